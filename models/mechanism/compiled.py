@@ -1,0 +1,196 @@
+"""Code generation, compilation and loading of the mechanism's CasADi functions.
+
+The functions of :mod:`models.mechanism.closure` (one continuation step, a chunked sweep, a TF Newton
+solve) depend only on the *structure* of the mechanism: the kinds of its five links and whether it has
+a patella. For each structure the C code is generated once, compiled with the system C compiler
+(``$CC`` or ``cc``/``gcc``) into a shared library, and cached on disk under
+``$KNEE_CACHE_DIR`` (default ``~/.cache/knee-toolkit``), keyed by a hash of the generated source and the
+compiler flags. The library is called through ``ctypes`` with preallocated buffers, which keeps the
+per-call overhead to a microsecond or two.
+
+When no C compiler is found, or compiling fails, the same functions run through CasADi's own virtual
+machine (:class:`CasadiBackend`), slower but identical in results. ``KNEE_NO_COMPILE=1`` forces that
+fallback.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import logging
+import os
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from models.mechanism import closure
+
+log = logging.getLogger(__name__)
+
+GENERATOR_VERSION = "3"
+CFLAGS = ["-O2", "-fPIC", "-shared"]
+
+
+def cache_dir() -> Path:
+    d = os.environ.get("KNEE_CACHE_DIR")
+    return Path(d) if d else Path.home() / ".cache" / "knee-toolkit"
+
+
+def find_compiler() -> str | None:
+    """The C compiler to use, or None."""
+    cc = os.environ.get("CC")
+    if cc and shutil.which(cc):
+        return cc
+    for c in ("cc", "gcc", "clang"):
+        if shutil.which(c):
+            return c
+    return None
+
+
+def build_functions(kinds, has_pf) -> dict[str, ca.Function]:
+    step = closure.build_step(kinds, has_pf)
+    return {"knee_step": step, "knee_sweep": closure.build_sweep(step),
+            "knee_tf_newton": closure.build_tf_newton(kinds)}
+
+
+class _CFunction:
+    """One generated function of a loaded library, called with numpy buffers through ctypes.
+
+    ``inputs`` and ``outputs`` are flat float arrays (column-major contents of each argument).
+    """
+
+    def __init__(self, lib, name: str, f: ca.Function):
+        self.name = name
+        self._f = getattr(lib, name)
+        self._f.restype = ctypes.c_int
+        self._f.argtypes = [ctypes.c_void_p] * 4 + [ctypes.c_int]
+        ci = ctypes.c_longlong
+        work = getattr(lib, name + "_work")
+        work.argtypes = [ctypes.POINTER(ci)] * 4
+        sz = [ci() for _ in range(4)]
+        if work(*[ctypes.byref(s) for s in sz]) != 0:
+            raise RuntimeError(f"{name}_work failed")
+        sz_arg, sz_res, sz_iw, sz_w = (s.value for s in sz)
+        checkout = getattr(lib, name + "_checkout", None)
+        getattr(lib, name + "_incref")()
+        self._mem = checkout() if checkout is not None else 0
+        self.inputs = [np.zeros(f.numel_in(i)) for i in range(f.n_in())]
+        self.outputs = [np.zeros(f.numel_out(i)) for i in range(f.n_out())]
+        self._iw = np.zeros(max(sz_iw, 1), dtype=np.int64)
+        self._w = np.zeros(max(sz_w, 1))
+        argv = [a.ctypes.data for a in self.inputs] + [0] * (sz_arg - f.n_in())
+        resv = [r.ctypes.data for r in self.outputs] + [0] * (sz_res - f.n_out())
+        self._arg = (ctypes.c_void_p * len(argv))(*argv)
+        self._res = (ctypes.c_void_p * len(resv))(*resv)
+        self._call_args = (ctypes.addressof(self._arg), ctypes.addressof(self._res),
+                           self._iw.ctypes.data, self._w.ctypes.data, self._mem)
+
+    def call(self) -> None:
+        """Evaluate with the current contents of :attr:`inputs` into :attr:`outputs`."""
+        if self._f(*self._call_args) != 0:
+            raise RuntimeError(f"{self.name} failed")
+
+
+class _CasadiFunction:
+    """The same interface as :class:`_CFunction`, evaluated by CasADi (no compiler needed)."""
+
+    def __init__(self, f: ca.Function):
+        self.name = f.name()
+        self._f = f
+        self._shapes = [f.size_in(i) for i in range(f.n_in())]
+        self.inputs = [np.zeros(f.numel_in(i)) for i in range(f.n_in())]
+        self.outputs = [np.zeros(f.numel_out(i)) for i in range(f.n_out())]
+
+    def call(self) -> None:
+        res = self._f(*[a.reshape(s, order="F") for a, s in zip(self.inputs, self._shapes)])
+        if not isinstance(res, (list, tuple)):
+            res = [res]
+        for o, r in zip(self.outputs, res):
+            o[...] = np.asarray(ca.DM(r)).ravel(order="F")
+
+
+class Backend:
+    """The mechanism's numeric functions for one structure: ``step``, ``sweep``, ``tf_newton``.
+
+    Attributes
+    ----------
+    compiled : bool
+        True when the functions run from the compiled shared library.
+    library : Path or None
+        The cached shared library in use.
+    """
+
+    def __init__(self, kinds, has_pf, compile: bool | None = None):
+        self.kinds = tuple(kinds)
+        self.has_pf = bool(has_pf)
+        funcs = build_functions(self.kinds, self.has_pf)
+        self.library = None
+        self.compiled = False
+        want = compile if compile is not None else os.environ.get("KNEE_NO_COMPILE", "") in ("", "0")
+        if want:
+            try:
+                self.library = _compiled_library(funcs)
+            except (OSError, RuntimeError, subprocess.SubprocessError) as e:
+                log.warning("compiling the mechanism failed (%s); using CasADi's virtual machine", e)
+        if self.library is not None:
+            lib = ctypes.CDLL(str(self.library))
+            self._lib = lib
+            wrap = {n: _CFunction(lib, n, f) for n, f in funcs.items()}
+            self.compiled = True
+        else:
+            wrap = {n: _CasadiFunction(f) for n, f in funcs.items()}
+        self.step = wrap["knee_step"]
+        self.sweep = wrap["knee_sweep"]
+        self.tf_newton = wrap["knee_tf_newton"]
+
+
+_BACKENDS: dict = {}
+
+
+def backend(kinds, has_pf, compile: bool | None = None) -> Backend:
+    """A (memoised) :class:`Backend` for a structure."""
+    key = (tuple(kinds), bool(has_pf), compile, os.environ.get("KNEE_NO_COMPILE", ""))
+    if key not in _BACKENDS:
+        _BACKENDS[key] = Backend(kinds, has_pf, compile)
+    return _BACKENDS[key]
+
+
+def _compiled_library(funcs: dict[str, ca.Function]) -> Path | None:
+    cc = find_compiler()
+    if cc is None:
+        log.warning("no C compiler found; the mechanism runs in CasADi's virtual machine")
+        return None
+    with tempfile.TemporaryDirectory(prefix="knee-cg-") as tmp:
+        cg = ca.CodeGenerator("knee_mech.c", {"with_header": False})
+        for f in funcs.values():
+            cg.add(f)
+        cwd = os.getcwd()
+        try:
+            os.chdir(tmp)
+            cg.generate()
+        finally:
+            os.chdir(cwd)
+        src = Path(tmp) / "knee_mech.c"
+        code = src.read_bytes()
+        key = hashlib.sha256(code + " ".join(CFLAGS).encode() + GENERATOR_VERSION.encode()
+                             + ca.__version__.encode()).hexdigest()[:20]
+        d = cache_dir()
+        so = d / f"knee_mech_{key}.so"
+        if so.is_file():
+            return so
+        d.mkdir(parents=True, exist_ok=True)
+        out = Path(tmp) / "lib.so"
+        proc = subprocess.run([cc, *CFLAGS, str(src), "-o", str(out), "-lm"], capture_output=True,
+                              text=True, timeout=600)
+        if proc.returncode != 0:
+            raise RuntimeError(f"{cc} failed: {proc.stderr.strip().splitlines()[-1:]}")
+        fd, part = tempfile.mkstemp(dir=d, suffix=".part")
+        os.close(fd)
+        shutil.copyfile(out, part)
+        os.replace(part, so)  # atomic: concurrent processes never load a half-written library
+        log.info("compiled mechanism functions into %s", so)
+        return so

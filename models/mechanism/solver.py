@@ -1,0 +1,477 @@
+"""Solving the knee mechanism: single angles, sweeps by continuation, assembly modes, derivatives.
+
+A :class:`Mechanism` is built from :class:`~models.mechanism.params.MechanismParams`. On construction it
+chooses an assembly branch (the parameter file's ``[initial]`` pose, or a multi-start search) and
+tabulates that branch at 1-degree spacing over the whole flexion range where it assembles, refining
+both ends of the range to 1e-6 degrees. Every later solve starts from the nearest tabulated state, so a
+solve at any angle stays on the chosen branch.
+
+Angles are radians throughout (degrees only in the CLI and CSV); lengths mm.
+
+Example
+-------
+>>> from models.mechanism import Mechanism
+>>> m = Mechanism.from_name("volunteer")
+>>> res = m.sweep(np.radians(np.arange(0, 121)))
+>>> res.tf.shape, float(res.residual.max()) < 1e-9
+((121, 6), True)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from models.mechanism import closure, compiled
+from models.mechanism.params import N_PARAMS, MechanismParams, load_model
+from toolkit.conventions import joint_to_pose
+from toolkit.errors import AssemblyError, KneeInputError
+
+PF0 = closure.PF0
+#: Closure residual (mm) above which a solve counts as not converged.
+RESIDUAL_TOL = 1e-9
+#: Jacobian condition number above which an angle is reported as near-singular.
+SINGULAR_COND = 1e4
+#: A step whose rate of change (mm or degrees per degree of flexion) exceeds both this and
+#: JUMP_RATIO times the previous step's rate is reported as a jump between branches.
+JUMP_RATE = 2.0
+JUMP_RATIO = 5.0
+_TABLE_STEP = math.radians(1.0)
+_SEARCH_LIMIT = math.radians(180.0)
+
+
+@dataclass
+class SweepResult:
+    """The motion of the mechanism over flexion angles.
+
+    Attributes
+    ----------
+    requested : (m,) float
+        The flexion angles asked for (rad).
+    flexion : (n,) float
+        The angles solved, n <= m (rad): the sweep stops at the first failure.
+    tf, pf : (n, 6) float
+        TF and PF joint coordinates (alpha, beta, gamma rad; anterior, proximal, lateral mm).
+        ``pf`` is NaN for a model without a patella.
+    residual : (n,) float
+        Largest absolute closure residual (mm) at each angle.
+    condition : (n,) float
+        Condition number of the TF closure Jacobian (rows mm, columns rad for beta and gamma and mm
+        for the translations).
+    near_singular : (n,) bool
+        ``condition > SINGULAR_COND``.
+    psi : (n,) float
+        The patella's rotation about the helical axis from the orientation that aligns the axes (rad).
+    status : str
+        ``"ok"``, ``"no-convergence"`` (no closure at the next angle), ``"jump"`` (the solution jumped
+        to another branch) or ``"out-of-range"`` (the first angle is outside the assembly range).
+    message : str
+        One line describing a stop, empty when ``status == "ok"``.
+    limit : float or None
+        When stopped: the last angle (rad) up to which the branch still assembles, refined by bisection.
+    """
+
+    requested: np.ndarray
+    flexion: np.ndarray
+    tf: np.ndarray
+    pf: np.ndarray
+    residual: np.ndarray
+    condition: np.ndarray
+    near_singular: np.ndarray
+    psi: np.ndarray
+    status: str = "ok"
+    message: str = ""
+    limit: float | None = None
+    _states: np.ndarray = field(default=None, repr=False)
+
+    @property
+    def complete(self) -> bool:
+        return self.status == "ok"
+
+    @property
+    def tf_poses(self) -> np.ndarray:
+        """Tibia in femur, (n, 4, 4)."""
+        return joint_to_pose(self.tf)
+
+    @property
+    def pf_poses(self) -> np.ndarray:
+        """Patella in femur, (n, 4, 4) (NaN without a patella)."""
+        return joint_to_pose(self.pf)
+
+
+@dataclass
+class Sensitivity:
+    """Derivatives of the 12 joint coordinates (TF then PF; 6 for a TF-only model).
+
+    Attributes
+    ----------
+    flexion : (n,) float
+    d_flexion : (n, k) float
+        d(coordinate)/d(flexion), per radian of TF flexion.
+    d_params : (n, k, N_PARAMS) float
+        d(coordinate)/d(parameter), for the flat parameter vector (see ``parameter_names``).
+    """
+
+    flexion: np.ndarray
+    d_flexion: np.ndarray
+    d_params: np.ndarray
+
+
+class Mechanism:
+    """The 1-DoF spatial parallel mechanism of a knee, solved with CasADi (see module docstring).
+
+    Parameters
+    ----------
+    params : MechanismParams
+    compile : bool or None
+        Use the compiled (C) functions: True, False, or None for "when a compiler is available".
+
+    Attributes
+    ----------
+    assembly_range : (float, float)
+        Flexion range (rad) over which the chosen branch assembles (TF, and PF with a patella).
+    psi_ref : float
+        The patella's axis rotation at the PF reference pose (0 without a patella).
+    """
+
+    def __init__(self, params: MechanismParams, compile: bool | None = None):
+        self.params = params
+        self.p = params.to_vector()
+        self.backend = compiled.backend(params.kinds, params.has_pf, compile)
+        self.has_pf = params.has_pf
+        self.psi_ref = 0.0
+        self._sens_fn = None
+        self._build_branch()
+
+    @classmethod
+    def from_name(cls, name_or_path, compile: bool | None = None) -> "Mechanism":
+        """A mechanism from a bundled parameter-set name or a TOML path."""
+        return cls(load_model(name_or_path), compile)
+
+    @property
+    def compiled(self) -> bool:
+        return self.backend.compiled
+
+    # ------------------------------------------------------------------------------------------
+    # Low-level steps
+
+    def _step(self, state, alpha, psi_ref=None):
+        st = self.backend.step
+        st.inputs[0][:] = state
+        st.inputs[1][0] = alpha
+        st.inputs[2][:] = self.p
+        st.inputs[3][0] = self.psi_ref if psi_ref is None else psi_ref
+        st.call()
+        return st.outputs[0].copy(), st.outputs[1].copy()
+
+    def _ok(self, diag, use_pf=True) -> bool:
+        r = np.abs(diag[:6] if (use_pf and self.has_pf) else diag[:5])
+        return bool(np.all(r < RESIDUAL_TOL))
+
+    @staticmethod
+    def _rate(s0, s1, da):
+        d = np.abs(s1[:5] - s0[:5])
+        d[:2] = np.degrees(d[:2])
+        return float(d.max() / max(abs(math.degrees(da)), 1e-12))
+
+    def _walk(self, state, direction, limit, use_pf):
+        """Continue from ``state`` in 1-degree steps towards ``limit``. Returns the states visited; when
+        a step fails, the last one is the end of the assembly range, refined by bisection to 1e-6 deg.
+        """
+        out = [state]
+        prev_rate = None
+        while (limit - out[-1][6]) * direction > 1e-12:
+            a = out[-1][6]
+            target = a + direction * min(_TABLE_STEP, abs(limit - a))
+            s, d = self._step(out[-1], target)
+            rate = self._rate(out[-1], s, target - a)
+            if self._ok(d, use_pf) and not (prev_rate is not None and rate > JUMP_RATE
+                                            and rate > JUMP_RATIO * prev_rate):
+                out.append(s)
+                prev_rate = rate
+                continue
+            out.extend(self._bisect_end(out[-1], target, use_pf))
+            break
+        return out
+
+    def _bisect_end(self, base, bad_alpha, use_pf):
+        """States approaching the end of the range between ``base`` (closes) and ``bad_alpha`` (does
+        not). Near a fold the two branches merge, so a step is accepted when it closes and moves the
+        unknowns by less than ``JUMP_RATE`` mm (or degrees)."""
+        lo, hi, visited = base, bad_alpha, []
+        while abs(hi - lo[6]) > math.radians(1e-6):
+            mid = 0.5 * (lo[6] + hi)
+            s, d = self._step(lo, mid)
+            step = np.abs(s[:5] - lo[:5])
+            step[:2] = np.degrees(step[:2])
+            if self._ok(d, use_pf) and step.max() < JUMP_RATE:
+                lo = s
+                visited.append(s)
+            else:
+                hi = mid
+        return visited[-1:] if visited else []
+
+    def _initial_state(self):
+        ini = self.params.initial
+        if ini is not None:
+            s, d = self._newton(ini.unknowns, ini.flexion)
+            if not self._ok(np.r_[d, 0.0], use_pf=False):
+                raise AssemblyError(
+                    f"{self.params.name}: the stored initial pose does not close at "
+                    f"{math.degrees(ini.flexion):.3g} deg (residual {np.abs(d).max():.3g} mm)")
+            return np.r_[s, 0.0, ini.flexion]
+        for deg in (0, 10, 20, 30, 45, 60, 90, -10):
+            modes = self.assembly_modes(math.radians(deg), _all=True)
+            if modes:
+                x = min(modes, key=lambda m: m[0] ** 2 + m[1] ** 2)
+                return np.r_[x, 0.0, math.radians(deg)]
+        raise AssemblyError(f"{self.params.name}: the mechanism does not assemble at any of the tried "
+                            "flexion angles (multi-start found no closure)")
+
+    def _newton(self, x0, alpha):
+        f = self.backend.tf_newton
+        f.inputs[0][:] = x0
+        f.inputs[1][0] = alpha
+        f.inputs[2][:] = self.p
+        f.call()
+        return f.outputs[0].copy(), f.outputs[1].copy()
+
+    def _build_branch(self):
+        s0 = self._initial_state()
+        use_pf = False
+        if self.has_pf:
+            a_ref = self.params.pf.reference_flexion
+            path = self._walk(s0, 1.0 if a_ref >= s0[6] else -1.0, a_ref, use_pf=False)
+            if abs(path[-1][6] - a_ref) > 1e-9:
+                raise AssemblyError(
+                    f"{self.params.name}: the TF mechanism stops assembling at "
+                    f"{math.degrees(path[-1][6]):.2f} deg, before the PF reference flexion "
+                    f"{math.degrees(a_ref):.1f} deg")
+            self.x_ref = path[-1][:5].copy()
+            self.psi_ref = self._reference_psi(self.x_ref, a_ref)
+            s0 = np.r_[self.x_ref, self.psi_ref, a_ref]
+            use_pf = True
+        else:
+            self.x_ref = None
+        up = self._walk(s0, 1.0, _SEARCH_LIMIT, use_pf)
+        down = self._walk(s0, -1.0, -_SEARCH_LIMIT, use_pf)
+        table = np.array(down[::-1] + up[1:])
+        self._table = table
+        self._table_alpha = table[:, 6]
+        self.assembly_range = (float(table[0, 6]), float(table[-1, 6]))
+
+    def _reference_psi(self, x_ref, a_ref) -> float:
+        """The PF reference pose: of the roots of the tendon equation (theta = 0) at the reference
+        flexion, the one with the patella's origin most anterior in the femur frame."""
+        fn = closure.build_pf_scan(self.params.kinds)
+        grid = np.linspace(-math.pi, math.pi, 721)
+        vals = np.asarray(fn.map(grid.size)(grid[None, :], x_ref, a_ref, self.p)[0]).ravel()
+        roots = []
+        for i in np.nonzero(np.sign(vals[:-1]) != np.sign(vals[1:]))[0]:
+            psi = 0.5 * (grid[i] + grid[i + 1])
+            for _ in range(50):
+                r, dr = (float(v) for v in fn(psi, x_ref, a_ref, self.p))
+                step = r / dr
+                psi -= step
+                if abs(step) < 1e-14:
+                    break
+            if abs(float(fn(psi, x_ref, a_ref, self.p)[0])) < RESIDUAL_TOL:
+                roots.append(psi)
+        if not roots:
+            raise AssemblyError(f"{self.params.name}: the patellar tendon cannot close at the reference "
+                                f"flexion {math.degrees(a_ref):.1f} deg (no root of eq. 4)")
+        psi_s, p_s = ca.SX.sym("psi"), ca.SX.sym("p", N_PARAMS)
+        q = ca.Function("q", [psi_s, p_s], [closure.pf_joint(psi_s, 0, p_s)])
+        anterior = [float(q(r, self.p)[3]) for r in roots]
+        return float(roots[int(np.argmax(anterior))])
+
+    def _nearest(self, alpha) -> np.ndarray:
+        i = int(np.argmin(np.abs(self._table_alpha - alpha)))
+        return self._table[i]
+
+    # ------------------------------------------------------------------------------------------
+    # Public API
+
+    def in_range(self, alpha) -> bool:
+        lo, hi = self.assembly_range
+        return lo - 1e-12 <= alpha <= hi + 1e-12
+
+    def solve(self, flexion: float):
+        """Solve the mechanism at one flexion angle (rad) on the chosen branch.
+
+        Returns
+        -------
+        (tf, pf, residual) : (6,) float, (6,) float, float
+            Joint coordinates (PF NaN without a patella) and the largest closure residual (mm).
+
+        Raises
+        ------
+        AssemblyError
+            The angle is outside the assembly range, or Newton does not converge.
+        """
+        a = float(flexion)
+        if not math.isfinite(a):
+            raise KneeInputError(f"flexion must be finite, got {flexion}")
+        if not self.in_range(a):
+            lo, hi = (math.degrees(v) for v in self.assembly_range)
+            raise AssemblyError(f"flexion {math.degrees(a):.2f} deg is outside the assembly range "
+                                f"{lo:.2f} to {hi:.2f} deg of {self.params.name}")
+        s, d = self._step(self._nearest(a), a)
+        res = float(np.abs(d[:6] if self.has_pf else d[:5]).max())
+        if not res < RESIDUAL_TOL:
+            raise AssemblyError(f"no closure at {math.degrees(a):.3f} deg (residual {res:.3g} mm)")
+        tf = np.r_[a, s[:5]]
+        pf = d[31:37].copy() if self.has_pf else np.full(6, np.nan)
+        return tf, pf, res
+
+    def sweep(self, flexion) -> SweepResult:
+        """Solve over a sequence of flexion angles (rad) by continuation along the chosen branch.
+
+        The first angle starts from the nearest tabulated branch state; each next one from the previous
+        solution moved along the branch tangent. The sweep stops at the first angle that does not
+        close (residual above ``RESIDUAL_TOL``) or that jumps to another branch, and reports where the
+        branch stops assembling; rows before the stop are returned.
+
+        Parameters
+        ----------
+        flexion : (m,) float
+            Angles in rad, in the order to visit (usually monotonic, steps of a few degrees at most).
+        """
+        al = np.asarray(flexion, dtype=float).ravel()
+        if al.size == 0:
+            raise KneeInputError("sweep needs at least one flexion angle")
+        if not np.all(np.isfinite(al)):
+            raise KneeInputError("flexion angles must be finite")
+        if not self.in_range(al[0]):
+            lo, hi = (math.degrees(v) for v in self.assembly_range)
+            return self._result(al, np.zeros((0, 7)), np.zeros((0, 37)), "out-of-range",
+                                f"{math.degrees(al[0]):.2f} deg is outside the assembly range "
+                                f"{lo:.2f} to {hi:.2f} deg of {self.params.name}; nothing solved", None)
+        sw = self.backend.sweep
+        n, C = al.size, closure.CHUNK
+        states = np.empty((n, closure.N_STATE))
+        diags = np.empty((n, closure.N_DIAG))
+        state = self._nearest(al[0])
+        sw.inputs[2][:] = self.p
+        sw.inputs[3][0] = self.psi_ref
+        for k in range(0, n, C):
+            m = min(C, n - k)
+            sw.inputs[0][:] = state
+            sw.inputs[1][:m] = al[k:k + m]
+            sw.inputs[1][m:] = al[k + m - 1]
+            sw.call()
+            states[k:k + m] = sw.outputs[0].reshape(C, closure.N_STATE)[:m]
+            diags[k:k + m] = sw.outputs[1].reshape(C, closure.N_DIAG)[:m]
+            state = states[k + m - 1]
+        # checks, vectorised: convergence, then jumps between branches
+        res = np.abs(diags[:, :6] if self.has_pf else diags[:, :5]).max(axis=1)
+        bad = ~(res < RESIDUAL_TOL)
+        prev = np.vstack([self._nearest(al[0])[None, :], states[:-1]])
+        d = np.abs(states[:, :5] - prev[:, :5])
+        d[:, :2] = np.degrees(d[:, :2])
+        da = np.degrees(np.abs(al - prev[:, 6]))
+        rate = d.max(axis=1) / np.maximum(da, 1e-12)
+        rate[da < 1e-9] = 0.0
+        jump = np.zeros(n, bool)
+        jump[1:] = (rate[1:] > JUMP_RATE) & (rate[1:] > JUMP_RATIO * rate[:-1])
+        stop = np.nonzero(bad | jump)[0]
+        if stop.size == 0:
+            return self._result(al, states, diags, "ok", "", None)
+        k = int(stop[0])
+        if bad[k]:
+            status = "no-convergence"
+        else:
+            status = "jump"
+        # where does the branch stop assembling? refine between the last good angle and al[k]
+        base = states[k - 1] if k > 0 else self._nearest(al[0])
+        ends = self._bisect_end(base, al[k], self.has_pf)
+        limit = float(ends[-1][6]) if ends else float(base[6])
+        last = f"{math.degrees(al[k - 1]):.2f} deg" if k > 0 else "none"
+        if status == "jump":
+            msg = (f"jumped to another assembly branch at {math.degrees(al[k]):.2f} deg "
+                   f"(last angle solved: {last})")
+        else:
+            msg = (f"no closure at {math.degrees(al[k]):.2f} deg: the mechanism stops assembling at "
+                   f"{math.degrees(limit):.2f} deg (last angle solved: {last})")
+        return self._result(al, states[:k], diags[:k], status, msg, limit)
+
+    def _result(self, al, states, diags, status, msg, limit) -> SweepResult:
+        n = states.shape[0]
+        tf = np.column_stack([states[:, 6], states[:, :5]]) if n else np.zeros((0, 6))
+        pf = diags[:, 31:37].copy() if self.has_pf else np.full((n, 6), np.nan)
+        res = np.abs(diags[:, :6] if self.has_pf else diags[:, :5]).max(axis=1) if n else np.zeros(0)
+        J = diags[:, 6:31].reshape(n, 5, 5).transpose(0, 2, 1)  # column-major -> rows
+        cond = np.linalg.cond(J) if n else np.zeros(0)
+        return SweepResult(requested=al, flexion=tf[:, 0].copy(), tf=tf, pf=pf, residual=res,
+                           condition=cond, near_singular=cond > SINGULAR_COND,
+                           psi=states[:, 5].copy(), status=status, message=msg, limit=limit,
+                           _states=states)
+
+    def assembly_modes(self, flexion: float, n_starts: int = 2000, seed: int = 0, _all=False):
+        """All TF assembly modes found at a flexion angle by multi-start Newton.
+
+        Starts are drawn uniformly (beta, gamma in [-90, 90] deg, translations in [-100, 100] mm);
+        converged solutions (residual < 1e-9 mm) are merged when closer than 1e-6. A multi-start search
+        can miss modes; the real solutions of a 5-5 mechanism are at most 40.
+
+        Returns
+        -------
+        list of (5,) float
+            ``(beta, gamma, anterior, proximal, lateral)``, sorted by beta**2 + gamma**2. With a built
+            branch, the mode on it comes first when found.
+        """
+        rng = np.random.default_rng(seed)
+        starts = np.column_stack([rng.uniform(-math.pi / 2, math.pi / 2, (n_starts, 2)),
+                                  rng.uniform(-100, 100, (n_starts, 3))])
+        modes: list[np.ndarray] = []
+        for x0 in starts:
+            x, r = self._newton(x0, flexion)
+            if not np.all(np.abs(r) < RESIDUAL_TOL):
+                continue
+            x[:2] = np.arctan2(np.sin(x[:2]), np.cos(x[:2]))
+            if not any(np.abs(x - m).max() < 1e-6 for m in modes):
+                modes.append(x)
+        modes.sort(key=lambda m: m[0] ** 2 + m[1] ** 2)
+        if not _all and hasattr(self, "_table") and modes and self.in_range(flexion):
+            on = self.solve(flexion)[0][1:]
+            modes.sort(key=lambda m: float(np.abs(m - on).max() > 1e-6))
+        return modes
+
+    def sensitivities(self, flexion) -> Sensitivity:
+        """Derivatives of the joint coordinates with respect to flexion and to every parameter.
+
+        Computed from CasADi's exact Jacobians of the closure equations by the implicit function
+        theorem; with a patella, the dependence of the PF reference pose on the parameters is included.
+
+        Parameters
+        ----------
+        flexion : (n,) float
+            Angles (rad) inside the assembly range.
+        """
+        al = np.atleast_1d(np.asarray(flexion, dtype=float))
+        sw = self.sweep(al)
+        if not sw.complete:
+            raise AssemblyError(sw.message)
+        if self._sens_fn is None:
+            self._sens_fn = closure.build_sensitivity(self.params.kinds, self.has_pf)
+        n = al.size
+        if self.has_pf:
+            Z = np.column_stack([sw._states[:, :6], np.tile(np.r_[self.x_ref, self.psi_ref], (n, 1))])
+        else:
+            Z = sw._states[:, :5]
+        fm = self._sens_fn.map(n)
+        out = fm(Z.T, al[None, :], np.tile(self.p[:, None], (1, n)))
+        k, nz = (12 if self.has_pf else 6), Z.shape[1]
+        Fz = np.asarray(out[1]).reshape(nz, n, nz, order="F").transpose(1, 0, 2)
+        Fa = np.asarray(out[2]).reshape(nz, n, order="F").T
+        Fp = np.asarray(out[3]).reshape(nz, n, N_PARAMS, order="F").transpose(1, 0, 2)
+        yz = np.asarray(out[5]).reshape(k, n, nz, order="F").transpose(1, 0, 2)
+        ya = np.asarray(out[6]).reshape(k, n, order="F").T
+        yp = np.asarray(out[7]).reshape(k, n, N_PARAMS, order="F").transpose(1, 0, 2)
+        rhs = np.concatenate([Fa[:, :, None], Fp], axis=2)
+        dz = -np.linalg.solve(Fz, rhs)
+        dy = np.concatenate([ya[:, :, None], yp], axis=2) + yz @ dz
+        return Sensitivity(flexion=al, d_flexion=dy[:, :, 0], d_params=dy[:, :, 1:])
