@@ -118,23 +118,25 @@ def symbols():
         ca.SX.sym("psi_ref")
 
 
-NEWTON_OPTS = {"abstol": 1e-12, "abstolStep": 1e-12, "max_iter": 40}
+NEWTON_OPTS = {"abstol": 1e-12, "abstolStep": 1e-12, "max_iter": 40, "error_on_fail": False}
 #: Length of the chunk of angles one call of the compiled sweep solves.
 CHUNK = 64
 #: Size of the step function's diagnostic output: TF residuals (5), PF residual (1),
 #: TF Jacobian (25, column-major), PF joint coordinates (6).
 N_DIAG = 37
-N_STATE = 7
+#: State carried by the continuation: (x[5], psi, alpha) now and at the previous step.
+N_STATE = 14
 
 
 def build_step(kinds, has_pf):
     """One continuation step, TF then PF.
 
-    ``step(state, alpha, p, psi_ref) -> (state', diag)`` where ``state = (x[5], psi, alpha_prev)``.
-    The TF guess is the previous solution moved along the branch tangent
-    ``dx/dalpha = -J^-1 dr/dalpha`` (a first-order predictor; dropped if the tangent is huge, near a
-    fold), then ``fast_newton`` (code-generatable) solves the five TF equations; the PF angle follows
-    from the tendon equation by a 1-D Newton solve from the previous psi.
+    ``step(state, alpha, p, psi_ref) -> (state', diag)`` where
+    ``state = (x[5], psi, alpha, x_prev[5], psi_prev, alpha_prev)`` holds the last two solutions.
+    The guess is the secant extrapolation of the last two solutions to the new angle (a first-order
+    predictor; the extrapolation factor is capped at 3 and dropped when the last two angles coincide),
+    then ``fast_newton`` (code-generatable) solves the five TF equations, and the PF angle follows from
+    the tendon equation by a 1-D Newton solve from its own extrapolated guess.
     """
     x, a, p, psi, psi_ref = symbols()
     r = tf_residual(x, a, p, kinds)
@@ -142,25 +144,24 @@ def build_step(kinds, has_pf):
     rf_tf = ca.rootfinder("rf_tf", "fast_newton", g_tf, NEWTON_OPTS)
 
     state = ca.SX.sym("state", N_STATE)
-    xprev, psiprev, aprev = state[0:5], state[5], state[6]
-    J = ca.jacobian(r, x)
-    Ja = ca.jacobian(r, a)
-    tangent = ca.Function("tangent", [x, a, p], [-ca.solve(J, Ja)])
-    dx = tangent(xprev, aprev, p) * (a - aprev)
-    guess = ca.if_else(ca.norm_inf(dx) < 0.2, xprev + dx, xprev)
-    xs = rf_tf(guess, ca.vertcat(a, p))
+    cur, prev = state[0:7], state[7:14]
+    da_prev = cur[6] - prev[6]
+    ratio = ca.if_else(ca.fabs(da_prev) > 1e-12, (a - cur[6]) / da_prev, 0)
+    ratio = ca.fmin(ca.fmax(ratio, -3), 3)
+    guess = cur[0:6] + ratio * (cur[0:6] - prev[0:6])
+    xs = rf_tf(guess[0:5], ca.vertcat(a, p))
     r_at = ca.Function("r_tf", [x, a, p], [r])(xs, a, p)
-    J_at = ca.Function("J_tf", [x, a, p], [J])(xs, a, p)
+    J_at = ca.Function("J_tf", [x, a, p], [ca.jacobian(r, x)])(xs, a, p)
     if has_pf:
         rp = pf_residual(psi, psi - psi_ref, x, a, p)
         g_pf = ca.Function("g_pf", [psi, ca.vertcat(x, a, p, psi_ref)], [rp])
         rf_pf = ca.rootfinder("rf_pf", "fast_newton", g_pf, NEWTON_OPTS)
-        psis = rf_pf(psiprev, ca.vertcat(xs, a, p, psi_ref))
+        psis = rf_pf(guess[5], ca.vertcat(xs, a, p, psi_ref))
         rp_at = ca.Function("r_pf", [psi, x, a, p, psi_ref], [rp])(psis, xs, a, p, psi_ref)
         qpf = ca.Function("q_pf", [psi, p, psi_ref], [pf_joint(psi, psi - psi_ref, p)])(psis, p, psi_ref)
     else:
         psis, rp_at, qpf = ca.SX(0), ca.SX(0), ca.SX.zeros(6)
-    new_state = ca.vertcat(xs, psis, a)
+    new_state = ca.vertcat(xs, psis, a, cur)
     diag = ca.vertcat(r_at, rp_at, ca.reshape(J_at, 25, 1), qpf)
     return ca.Function("knee_step", [state, a, p, psi_ref], [new_state, diag],
                        ["state", "alpha", "p", "psi_ref"], ["state_out", "diag"])

@@ -32,7 +32,7 @@ from models.mechanism import closure
 log = logging.getLogger(__name__)
 
 GENERATOR_VERSION = "3"
-CFLAGS = ["-O2", "-fPIC", "-shared"]
+CFLAGS = ["-O3", "-fPIC", "-shared"]
 
 
 def cache_dir() -> Path:

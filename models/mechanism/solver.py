@@ -43,6 +43,12 @@ _TABLE_STEP = math.radians(1.0)
 _SEARCH_LIMIT = math.radians(180.0)
 
 
+def _fresh(x, psi, alpha):
+    """A continuation state with no history: the previous solution equals the current one."""
+    cur = np.r_[x, psi, alpha]
+    return np.r_[cur, cur]
+
+
 @dataclass
 class SweepResult:
     """The motion of the mechanism over flexion angles.
@@ -60,9 +66,11 @@ class SweepResult:
         Largest absolute closure residual (mm) at each angle.
     condition : (n,) float
         Condition number of the TF closure Jacobian (rows mm, columns rad for beta and gamma and mm
-        for the translations).
+        for the translations); computed from the Jacobians the solver returns on first access.
     near_singular : (n,) bool
         ``condition > SINGULAR_COND``.
+    jacobian : (n, 5, 5) float
+        The TF closure Jacobian at each solution.
     psi : (n,) float
         The patella's rotation about the helical axis from the orientation that aligns the axes (rad).
     status : str
@@ -79,13 +87,28 @@ class SweepResult:
     tf: np.ndarray
     pf: np.ndarray
     residual: np.ndarray
-    condition: np.ndarray
-    near_singular: np.ndarray
+    jacobian: np.ndarray
     psi: np.ndarray
     status: str = "ok"
     message: str = ""
     limit: float | None = None
     _states: np.ndarray = field(default=None, repr=False)
+    _cond: np.ndarray = field(default=None, repr=False)
+
+    @property
+    def condition(self) -> np.ndarray:
+        if self._cond is None:
+            if len(self.jacobian):
+                sv = np.linalg.svd(self.jacobian, compute_uv=False)
+                with np.errstate(divide="ignore"):
+                    self._cond = sv[:, 0] / sv[:, -1]
+            else:
+                self._cond = np.zeros(0)
+        return self._cond
+
+    @property
+    def near_singular(self) -> np.ndarray:
+        return self.condition > SINGULAR_COND
 
     @property
     def complete(self) -> bool:
@@ -158,12 +181,18 @@ class Mechanism:
     # ------------------------------------------------------------------------------------------
     # Low-level steps
 
-    def _step(self, state, alpha, psi_ref=None):
+    def _claim(self, fn):
+        """Write this mechanism's parameters into a shared backend function's inputs, once."""
+        if getattr(fn, "owner", None) is not self:
+            fn.inputs[2][:] = self.p
+            fn.owner = self
+        fn.inputs[3][0] = self.psi_ref
+
+    def _step(self, state, alpha):
         st = self.backend.step
+        self._claim(st)
         st.inputs[0][:] = state
         st.inputs[1][0] = alpha
-        st.inputs[2][:] = self.p
-        st.inputs[3][0] = self.psi_ref if psi_ref is None else psi_ref
         st.call()
         return st.outputs[0].copy(), st.outputs[1].copy()
 
@@ -222,12 +251,12 @@ class Mechanism:
                 raise AssemblyError(
                     f"{self.params.name}: the stored initial pose does not close at "
                     f"{math.degrees(ini.flexion):.3g} deg (residual {np.abs(d).max():.3g} mm)")
-            return np.r_[s, 0.0, ini.flexion]
+            return _fresh(s, 0.0, ini.flexion)
         for deg in (0, 10, 20, 30, 45, 60, 90, -10):
             modes = self.assembly_modes(math.radians(deg), _all=True)
             if modes:
                 x = min(modes, key=lambda m: m[0] ** 2 + m[1] ** 2)
-                return np.r_[x, 0.0, math.radians(deg)]
+                return _fresh(x, 0.0, math.radians(deg))
         raise AssemblyError(f"{self.params.name}: the mechanism does not assemble at any of the tried "
                             "flexion angles (multi-start found no closure)")
 
@@ -236,6 +265,7 @@ class Mechanism:
         f.inputs[0][:] = x0
         f.inputs[1][0] = alpha
         f.inputs[2][:] = self.p
+        f.owner = None
         f.call()
         return f.outputs[0].copy(), f.outputs[1].copy()
 
@@ -252,7 +282,7 @@ class Mechanism:
                     f"{math.degrees(a_ref):.1f} deg")
             self.x_ref = path[-1][:5].copy()
             self.psi_ref = self._reference_psi(self.x_ref, a_ref)
-            s0 = np.r_[self.x_ref, self.psi_ref, a_ref]
+            s0 = _fresh(self.x_ref, self.psi_ref, a_ref)
             use_pf = True
         else:
             self.x_ref = None
@@ -319,11 +349,18 @@ class Mechanism:
             lo, hi = (math.degrees(v) for v in self.assembly_range)
             raise AssemblyError(f"flexion {math.degrees(a):.2f} deg is outside the assembly range "
                                 f"{lo:.2f} to {hi:.2f} deg of {self.params.name}")
-        s, d = self._step(self._nearest(a), a)
-        res = float(np.abs(d[:6] if self.has_pf else d[:5]).max())
+        st = self.backend.step
+        self._claim(st)
+        st.inputs[0][:] = self._table[int(np.abs(self._table_alpha - a).argmin())]
+        st.inputs[1][0] = a
+        st.call()
+        s, d = st.outputs
+        res = float(np.abs(d[:6 if self.has_pf else 5]).max())
         if not res < RESIDUAL_TOL:
             raise AssemblyError(f"no closure at {math.degrees(a):.3f} deg (residual {res:.3g} mm)")
-        tf = np.r_[a, s[:5]]
+        tf = np.empty(6)
+        tf[0] = a
+        tf[1:] = s[:5]
         pf = d[31:37].copy() if self.has_pf else np.full(6, np.nan)
         return tf, pf, res
 
@@ -355,8 +392,7 @@ class Mechanism:
         states = np.empty((n, closure.N_STATE))
         diags = np.empty((n, closure.N_DIAG))
         state = self._nearest(al[0])
-        sw.inputs[2][:] = self.p
-        sw.inputs[3][0] = self.psi_ref
+        self._claim(sw)
         for k in range(0, n, C):
             m = min(C, n - k)
             sw.inputs[0][:] = state
@@ -370,13 +406,15 @@ class Mechanism:
         res = np.abs(diags[:, :6] if self.has_pf else diags[:, :5]).max(axis=1)
         bad = ~(res < RESIDUAL_TOL)
         prev = np.vstack([self._nearest(al[0])[None, :], states[:-1]])
-        d = np.abs(states[:, :5] - prev[:, :5])
+        with np.errstate(invalid="ignore"):
+            d = np.abs(states[:, :5] - prev[:, :5])
         d[:, :2] = np.degrees(d[:, :2])
         da = np.degrees(np.abs(al - prev[:, 6]))
-        rate = d.max(axis=1) / np.maximum(da, 1e-12)
-        rate[da < 1e-9] = 0.0
-        jump = np.zeros(n, bool)
-        jump[1:] = (rate[1:] > JUMP_RATE) & (rate[1:] > JUMP_RATIO * rate[:-1])
+        with np.errstate(invalid="ignore"):
+            rate = d.max(axis=1) / np.maximum(da, 1e-12)
+            rate[da < 1e-9] = 0.0
+            jump = np.zeros(n, bool)
+            jump[1:] = (rate[1:] > JUMP_RATE) & (rate[1:] > JUMP_RATIO * rate[:-1])
         stop = np.nonzero(bad | jump)[0]
         if stop.size == 0:
             return self._result(al, states, diags, "ok", "", None)
@@ -404,11 +442,9 @@ class Mechanism:
         pf = diags[:, 31:37].copy() if self.has_pf else np.full((n, 6), np.nan)
         res = np.abs(diags[:, :6] if self.has_pf else diags[:, :5]).max(axis=1) if n else np.zeros(0)
         J = diags[:, 6:31].reshape(n, 5, 5).transpose(0, 2, 1)  # column-major -> rows
-        cond = np.linalg.cond(J) if n else np.zeros(0)
         return SweepResult(requested=al, flexion=tf[:, 0].copy(), tf=tf, pf=pf, residual=res,
-                           condition=cond, near_singular=cond > SINGULAR_COND,
-                           psi=states[:, 5].copy(), status=status, message=msg, limit=limit,
-                           _states=states)
+                           jacobian=J, psi=states[:, 5].copy(), status=status, message=msg,
+                           limit=limit, _states=states)
 
     def assembly_modes(self, flexion: float, n_starts: int = 2000, seed: int = 0, _all=False):
         """All TF assembly modes found at a flexion angle by multi-start Newton.
