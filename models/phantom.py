@@ -1,0 +1,171 @@
+"""Procedural phantom geometry of a knee, consistent with a mechanism parameter set.
+
+Each bone is a watertight triangle mesh in its own frame (mm; x anterior, y proximal, z lateral):
+
+* femur: a sphere for each condylar contact (centre = the contact link's femoral point, radius =
+  ``femur_radius``), a bar joining the condyles, a shaft, and, with a patella, a trochlear cylinder on
+  the helical axis;
+* tibia: for each sphere-sphere contact a facet cut from the tibial sphere (centre = the link's tibial
+  point, radius = length + R_femur for a concave facet, length - R_femur for a convex one), for each
+  sphere-plane contact a facet whose top is the tibial plane; a plateau slab, a shaft and the tibial
+  tuberosity;
+* patella: an ellipsoid on the far side of the helical axis from the trochlea, at the reference pose;
+* skin: a soft-tissue envelope around the posed bones (thigh and shank capsules and a knee sphere).
+
+By construction the femoral condyle spheres touch the tibial facets whenever the mechanism is closed:
+that is what the contact links mean. Booleans use trimesh's ``manifold`` engine (manifold3d).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from models.mechanism.params import MechanismParams
+from toolkit.conventions import joint_to_pose
+
+DEFAULT_CONDYLE_RADIUS = 22.0
+FACET_RADIUS = 17.0  # horizontal radius of a tibial facet (mm)
+
+
+@dataclass
+class Phantom:
+    """Bone meshes of a phantom knee, each in its own bone frame (trimesh.Trimesh, mm)."""
+
+    femur: trimesh.Trimesh
+    tibia: trimesh.Trimesh
+    patella: trimesh.Trimesh | None
+    params: MechanismParams
+    skin_radius: float
+
+    def skin(self, tf_pose: np.ndarray, pf_pose: np.ndarray | None = None) -> trimesh.Trimesh:
+        """The soft-tissue envelope, in the femur frame, with the tibia at ``tf_pose`` (4, 4).
+
+        A thigh capsule along the femoral shaft, a shank capsule along the tibial shaft (posed) and a
+        sphere at the knee, joined; the radius clears every bone by at least 8 mm at extension.
+        """
+        r = self.skin_radius
+        thigh = _capsule(np.array([0.0, 10.0, 0.0]), np.array([0.0, 170.0, 0.0]), r)
+        shank = _capsule(np.array([0.0, -10.0, 0.0]), np.array([0.0, -170.0, 0.0]), r * 0.92)
+        shank.apply_transform(tf_pose)
+        knee_c = 0.5 * (np.zeros(3) + tf_pose[:3, 3])
+        parts = [thigh, shank, trimesh.creation.icosphere(3, r * 1.02).apply_translation(knee_c)]
+        if pf_pose is not None and self.patella is not None:
+            pc = pf_pose[:3, :3] @ self.patella.centroid + pf_pose[:3, 3]
+            parts.append(trimesh.creation.icosphere(3, 24.0).apply_translation(pc))
+        return _union(parts)
+
+
+def _union(meshes) -> trimesh.Trimesh:
+    return trimesh.boolean.union(meshes, engine="manifold")
+
+
+def _capsule(a, b, r) -> trimesh.Trimesh:
+    """A capsule of radius r between points a and b."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    h = float(np.linalg.norm(b - a))
+    cap = trimesh.creation.capsule(height=h, radius=r, count=[24, 24])  # along z, centred
+    T = trimesh.geometry.align_vectors([0, 0, 1], (b - a) / h)
+    cap.apply_transform(T)
+    cap.apply_translation(0.5 * (a + b))
+    return cap
+
+
+def _cylinder(a, b, r, sections=40) -> trimesh.Trimesh:
+    return trimesh.creation.cylinder(radius=r, segment=np.array([a, b], float), sections=sections)
+
+
+def _sphere(c, r, subdivisions=4) -> trimesh.Trimesh:
+    return trimesh.creation.icosphere(subdivisions, r).apply_translation(np.asarray(c, float))
+
+
+def build_phantom(params: MechanismParams) -> Phantom:
+    """Build the phantom of a parameter set (about 0.2 s)."""
+    contacts = [lk for lk in params.links if lk.role == "contact"]
+    if len(contacts) < 2:
+        raise ValueError("a phantom needs the two condylar contact links")
+    up = np.array([0.0, 1.0, 0.0])
+
+    # ---- femur
+    fparts = []
+    centres = []
+    for lk in contacts:
+        rf = lk.femur_radius or DEFAULT_CONDYLE_RADIUS
+        fparts.append(_sphere(lk.femur, rf))
+        centres.append((lk.femur, rf))
+    (c1, r1), (c2, r2) = centres
+    fparts.append(_cylinder(c1, c2, 0.8 * min(r1, r2)))
+    mid = 0.5 * (c1 + c2)
+    shaft_top = mid + np.array([0.0, 160.0, 0.0])
+    fparts.append(_cylinder(mid + np.array([0, 0.3 * r1, 0]), shaft_top, 14.0))
+    fparts.append(_cylinder(mid + np.array([-4.0, 0.0, 0.0]), mid + np.array([-4.0, 45.0, 0.0]), 0.9 * min(r1, r2)))
+    patella = None
+    pf = params.pf
+    if pf is not None:
+        n = pf.axis_femur / np.linalg.norm(pf.axis_femur)
+        # trochlea: a cylinder on the helical axis reaching to the patella's posterior surface
+        tro_r = float(np.linalg.norm(pf.point_patella[:2])) - 20.0
+        fparts.append(_cylinder(pf.point_femur - 22 * n, pf.point_femur + 22 * n, max(tro_r, 10.0)))
+        # patella: ellipsoid, semi-axes 10 (AP) x 22 (PD) x 20 (ML), between origin and axis
+        pat = trimesh.creation.icosphere(4, 1.0)
+        pat.apply_scale([10.0, 22.0, 20.0])
+        ax_p = pf.point_patella
+        centre = ax_p - (tro_r + 10.0) * np.r_[ax_p[:2], 0.0] / np.linalg.norm(ax_p[:2])
+        pat.apply_translation(centre)
+        patella = pat
+    femur = _union(fparts)
+
+    # ---- tibia
+    tparts = []
+    tops = []
+    for lk in contacts:
+        rf = lk.femur_radius or DEFAULT_CONDYLE_RADIUS
+        if lk.kind == "distance":
+            if lk.tibia_surface == "convex":
+                rt = lk.length - rf
+                top = lk.tibia + rt * up
+                block = _cylinder(top - 14 * up, top + 2 * up, FACET_RADIUS)
+                facet = trimesh.boolean.intersection([block, _sphere(lk.tibia, rt, 5)], engine="manifold")
+                base_y = top[1] - 14
+            else:
+                rt = lk.length + rf
+                bottom = lk.tibia - rt * up
+                block = _cylinder(bottom - 12 * up, bottom + 6 * up, FACET_RADIUS)
+                facet = trimesh.boolean.difference([block, _sphere(lk.tibia, rt, 5)], engine="manifold")
+                top = bottom
+                base_y = bottom[1] - 12
+            tparts.append(facet)
+        else:  # sphere-plane: the facet's top face is the tibial plane
+            nrm = lk.normal / np.linalg.norm(lk.normal)
+            top = lk.tibia
+            tparts.append(_cylinder(top - 14 * nrm, top, FACET_RADIUS))
+            base_y = top[1] - 14
+        tops.append((top, base_y))
+    (t1, b1), (t2, b2) = tops
+    slab_top = min(b1, b2) + 4.0
+    cx, cz = 0.5 * (t1[0] + t2[0]), 0.5 * (t1[2] + t2[2])
+    half_w = 0.5 * abs(t1[2] - t2[2]) + FACET_RADIUS
+    slab = trimesh.creation.box(extents=[2 * FACET_RADIUS + 8, 16.0, 2 * half_w])
+    slab.apply_translation([cx, slab_top - 8.0, cz])
+    tparts.append(slab)
+    shaft_top = np.array([cx, slab_top - 10, cz])
+    tparts.append(_cylinder(shaft_top, shaft_top - np.array([0, 170.0, 0]), 15.0))
+    if pf is not None:
+        tparts.append(_sphere(pf.tendon_tibia - np.array([6.0, 0, 0]), 9.0, 3))
+        tparts.append(_cylinder(pf.tendon_tibia - np.array([6.0, 0, 0]), shaft_top - np.array([0, 30, 0]), 9.0))
+    tibia = _union(tparts)
+
+    # ---- skin radius: clear every bone by 8 mm at extension (lateral and AP extent near the knee)
+    ext = np.vstack([femur.vertices[femur.vertices[:, 1] < 60], tibia.vertices[tibia.vertices[:, 1] > -60]])
+    rad = np.sqrt(ext[:, 0] ** 2 + ext[:, 2] ** 2).max()
+    return Phantom(femur=femur, tibia=tibia, patella=patella, params=params, skin_radius=float(rad + 8.0))
+
+
+def posed_bones(phantom: Phantom, tf: np.ndarray, pf: np.ndarray | None = None) -> dict[str, trimesh.Trimesh]:
+    """Copies of the bones posed in the femur frame for joint coordinates ``tf`` (and ``pf``), (6,)."""
+    out = {"femur": phantom.femur.copy(), "tibia": phantom.tibia.copy().apply_transform(joint_to_pose(tf))}
+    if phantom.patella is not None and pf is not None and np.all(np.isfinite(pf)):
+        out["patella"] = phantom.patella.copy().apply_transform(joint_to_pose(pf))
+    return out

@@ -1,0 +1,184 @@
+"""The ``knee`` command line.
+
+    knee models
+    knee sweep MODEL [--from 0] [--to 120] [--step 1] [--out motion.csv] [--rrd sweep.rrd] [--force]
+    knee demo [--out DIR]
+
+Angles in degrees, lengths in mm. Bad input gives a one-line ``knee: error: ...`` and exit code 2; no
+existing file is overwritten unless ``--force`` is given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from toolkit.errors import KneeInputError
+
+EXIT_BAD_INPUT = 2
+
+
+def _err(msg: str) -> int:
+    print(f"knee: error: {msg}", file=sys.stderr)
+    return EXIT_BAD_INPUT
+
+
+def _check_new(path: Path | None, force: bool) -> None:
+    if path is None:
+        return
+    if path.exists() and not force:
+        raise KneeInputError(f"{path} exists; not overwritten (use --force to replace it)")
+    if not path.parent.exists():
+        raise KneeInputError(f"directory {path.parent} does not exist")
+
+
+def _angles(a_from: float, a_to: float, step: float) -> np.ndarray:
+    for name, v in (("--from", a_from), ("--to", a_to), ("--step", step)):
+        if not math.isfinite(v):
+            raise KneeInputError(f"{name} must be a finite number of degrees, got {v}")
+    if step <= 0:
+        raise KneeInputError(f"--step must be positive, got {step}")
+    if step > 10:
+        raise KneeInputError(f"--step must be at most 10 deg for continuation to follow one branch, got {step}")
+    n = int(math.floor(abs(a_to - a_from) / step + 1e-9)) + 1
+    if n > 1_000_000:
+        raise KneeInputError(f"--from/--to/--step give {n} angles; at most 1000000")
+    sign = 1.0 if a_to >= a_from else -1.0
+    return a_from + sign * step * np.arange(n)
+
+
+def cmd_models(args) -> int:
+    from models.mechanism.params import bundled_models, load_model
+
+    for name, desc in bundled_models().items():
+        p = load_model(name)
+        kinds = "/".join(sorted(set(p.kinds)))
+        print(f"{name:22s} {'TF+PF' if p.has_pf else 'TF   '}  {kinds:22s} {desc}")
+    return 0
+
+
+def run_sweep(model: str, angles_deg: np.ndarray, out: Path | None, rrd: Path | None, quiet=False):
+    """Solve, write CSV and recording; returns (mechanism, result, seconds)."""
+    from models.mechanism import Mechanism
+    from toolkit.motion_io import write_sweep_csv
+
+    mech = Mechanism.from_name(model)
+    t0 = time.perf_counter()
+    res = mech.sweep(np.radians(angles_deg))
+    dt = time.perf_counter() - t0
+    if out is not None:
+        write_sweep_csv(out, res.tf, res.pf, res.residual, res.condition)
+    elif not quiet:
+        from toolkit.motion_io import SWEEP_HEADER, sweep_table
+
+        print(",".join(SWEEP_HEADER))
+        for row in sweep_table(res.tf, res.pf, res.residual, res.condition):
+            print(",".join("" if not math.isfinite(v) else f"{v:.10g}" for v in row))
+    if rrd is not None and res.flexion.size:
+        from models.phantom import build_phantom
+        from models.views import log_sweep, sweep_blueprint
+        from toolkit import recording
+
+        rec = recording.new_recording()
+        recording.save(rec, rrd, sweep_blueprint())
+        log_sweep(rec, mech, res, build_phantom(mech.params))
+        rec.flush()
+    return mech, res, dt
+
+
+def _summary(mech, res, dt) -> str:
+    lo, hi = (math.degrees(v) for v in mech.assembly_range)
+    backend = "compiled" if mech.compiled else "CasADi virtual machine"
+    lines = [f"model {mech.params.name}: assembles from {lo:.2f} to {hi:.2f} deg flexion",
+             f"solved {res.flexion.size} of {res.requested.size} angles in {dt * 1e3:.2f} ms ({backend}); "
+             f"max closure residual {res.residual.max() if res.residual.size else float('nan'):.1e} mm"]
+    if res.flexion.size:
+        ns = np.nonzero(res.near_singular)[0]
+        if ns.size:
+            lines.append(f"near-singular Jacobian (condition > 1e4) at {ns.size} angles, first at "
+                         f"{math.degrees(res.flexion[ns[0]]):.2f} deg")
+    return "\n".join(lines)
+
+
+def cmd_sweep(args) -> int:
+    out = Path(args.out) if args.out else None
+    rrd = Path(args.rrd) if args.rrd else None
+    _check_new(out, args.force)
+    _check_new(rrd, args.force)
+    angles = _angles(args.a_from, args.a_to, args.step)
+    mech, res, dt = run_sweep(args.model, angles, out, rrd)
+    print(_summary(mech, res, dt), file=sys.stderr)
+    if out is not None:
+        print(f"wrote {res.flexion.size} rows to {out}", file=sys.stderr)
+    if rrd is not None and res.flexion.size:
+        print(f"recording: {rrd}  (open with: rerun {rrd})", file=sys.stderr)
+    if not res.complete:
+        return _err(f"sweep stopped: {res.message}; {res.flexion.size} rows written")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    base = Path(args.out)
+    out_dir = base
+    k = 2
+    while out_dir.exists():  # never overwrite an earlier demo
+        out_dir = base.with_name(f"{base.name}-{k}")
+        k += 1
+    out_dir.mkdir(parents=True)
+    from models.mechanism import Mechanism
+
+    mech = Mechanism.from_name("volunteer")
+    hi = math.floor(math.degrees(mech.assembly_range[1]))
+    angles = np.arange(0.0, hi + 1.0, 1.0)
+    csv_path, rrd_path = out_dir / "volunteer-sweep.csv", out_dir / "volunteer-sweep.rrd"
+    print(f"knee demo: sweeping the bundled 'volunteer' knee over 0..{hi} deg ...", file=sys.stderr)
+    mech, res, dt = run_sweep("volunteer", angles, csv_path, rrd_path)
+    print(_summary(mech, res, dt))
+    i = np.searchsorted(res.flexion, math.radians(90.0))
+    if i < res.flexion.size:
+        tf, pf = res.tf[i], res.pf[i]
+        print(f"at {math.degrees(tf[0]):.0f} deg: TF adduction {math.degrees(tf[1]):+.2f} deg, internal rotation "
+              f"{math.degrees(tf[2]):+.2f} deg, translation ({tf[3]:+.1f}, {tf[4]:+.1f}, {tf[5]:+.1f}) mm; "
+              f"PF flexion {math.degrees(pf[0]):.1f} deg")
+    print(f"motion table: {csv_path}")
+    print(f"recording:    {rrd_path}")
+    print(f"open it with: rerun {rrd_path}")
+    return 0 if res.complete else _err(res.message)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="knee", description="Knee kinematics toolkit (mm, degrees at the CLI).")
+    sub = ap.add_subparsers(dest="command", required=True)
+    sub.add_parser("models", help="list the bundled parameter sets").set_defaults(func=cmd_models)
+    sp = sub.add_parser("sweep", help="solve the mechanism over a flexion range")
+    sp.add_argument("model", help="a bundled parameter set (see 'knee models') or a TOML file")
+    sp.add_argument("--from", dest="a_from", type=float, default=0.0, help="first flexion angle, deg (0)")
+    sp.add_argument("--to", dest="a_to", type=float, default=120.0, help="last flexion angle, deg (120)")
+    sp.add_argument("--step", type=float, default=1.0, help="step, deg (1)")
+    sp.add_argument("--out", help="CSV file to write (default: CSV on standard output)")
+    sp.add_argument("--rrd", help="Rerun recording to write")
+    sp.add_argument("--force", action="store_true", help="replace existing output files")
+    sp.set_defaults(func=cmd_sweep)
+    dp = sub.add_parser("demo", help="the main job on the bundled default knee, with a Rerun recording")
+    dp.add_argument("--out", default="knee-demo", help="output folder (a new one if it exists)")
+    dp.set_defaults(func=cmd_demo)
+    return ap
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except KneeInputError as e:
+        return _err(str(e))
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
