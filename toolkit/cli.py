@@ -95,8 +95,8 @@ def _summary(mech, res, dt) -> str:
     lo, hi = (math.degrees(v) for v in mech.assembly_range)
     backend = "compiled" if mech.compiled else "CasADi virtual machine"
     lines = [f"model {mech.params.name}: assembles from {lo:.2f} to {hi:.2f} deg flexion",
-             f"solved {res.flexion.size} of {res.requested.size} angles in {dt * 1e3:.2f} ms ({backend}); "
-             f"max closure residual {res.residual.max() if res.residual.size else float('nan'):.1e} mm"]
+             f"solved {res.flexion.size} of {res.requested.size} angles in {dt * 1e3:.2f} ms ({backend})"
+             + (f"; max closure residual {res.residual.max():.1e} mm" if res.residual.size else "")]
     if res.flexion.size:
         ns = np.nonzero(res.near_singular)[0]
         if ns.size:

@@ -501,12 +501,16 @@ class Mechanism:
         fm = self._sens_fn.map(n)
         out = fm(Z.T, al[None, :], np.tile(self.p[:, None], (1, n)))
         k, nz = (12 if self.has_pf else 6), Z.shape[1]
-        Fz = np.asarray(out[1]).reshape(nz, n, nz, order="F").transpose(1, 0, 2)
-        Fa = np.asarray(out[2]).reshape(nz, n, order="F").T
-        Fp = np.asarray(out[3]).reshape(nz, n, N_PARAMS, order="F").transpose(1, 0, 2)
-        yz = np.asarray(out[5]).reshape(k, n, nz, order="F").transpose(1, 0, 2)
-        ya = np.asarray(out[6]).reshape(k, n, order="F").T
-        yp = np.asarray(out[7]).reshape(k, n, N_PARAMS, order="F").transpose(1, 0, 2)
+
+        def blocks(m, rows, cols):  # map() stacks the n per-angle blocks horizontally
+            return np.asarray(m).reshape(rows, n, cols).transpose(1, 0, 2)
+
+        Fz = blocks(out[1], nz, nz)
+        Fa = blocks(out[2], nz, 1)[:, :, 0]
+        Fp = blocks(out[3], nz, N_PARAMS)
+        yz = blocks(out[5], k, nz)
+        ya = blocks(out[6], k, 1)[:, :, 0]
+        yp = blocks(out[7], k, N_PARAMS)
         rhs = np.concatenate([Fa[:, :, None], Fp], axis=2)
         dz = -np.linalg.solve(Fz, rhs)
         dy = np.concatenate([ya[:, :, None], yp], axis=2) + yz @ dz

@@ -1,0 +1,146 @@
+"""The knee command as a user runs it: a subprocess, real files."""
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from models.mechanism import load_model
+from toolkit.motion_io import SWEEP_HEADER, read_sweep_csv
+
+KNEE = [sys.executable, "-m", "toolkit.cli"]
+HEADER = ("tf_flexion_deg,tf_adduction_deg,tf_internal_rotation_deg,tf_anterior_mm,tf_proximal_mm,"
+          "tf_lateral_mm,pf_flexion_deg,pf_adduction_deg,pf_internal_rotation_deg,pf_anterior_mm,"
+          "pf_proximal_mm,pf_lateral_mm,max_residual_mm,jacobian_condition")
+
+
+def run(*args, cwd=None):
+    env = dict(os.environ, CI="1")
+    return subprocess.run(KNEE + [str(a) for a in args], capture_output=True, text=True, cwd=cwd, env=env,
+                          timeout=300)
+
+
+def assert_clean_error(p, *fragments):
+    assert p.returncode == 2, p.stderr
+    assert "Traceback" not in p.stderr
+    last = p.stderr.strip().splitlines()[-1]
+    assert last.startswith("knee: error: ")
+    for f in fragments:
+        assert f in last, last
+
+
+def test_models_lists_bundled_sets():
+    p = run("models")
+    assert p.returncode == 0
+    for name in ("volunteer", "volunteer-initial", "generic-sancisi2017"):
+        assert name in p.stdout
+
+
+def test_sweep_csv_and_recording(tmp_path, volunteer):
+    out, rrd = tmp_path / "motion.csv", tmp_path / "sweep.rrd"
+    p = run("sweep", "volunteer", "--from", 0, "--to", 120, "--step", 2, "--out", out, "--rrd", rrd)
+    assert p.returncode == 0, p.stderr
+    lines = out.read_text().splitlines()
+    assert lines[0] == HEADER == ",".join(SWEEP_HEADER)
+    assert len(lines) == 62
+    table = read_sweep_csv(out)
+    np.testing.assert_allclose(table[:, 0], np.arange(0, 121, 2.0))
+    res = volunteer.sweep(np.radians(np.arange(0, 121, 2.0)))
+    np.testing.assert_allclose(table[:, 1], np.degrees(res.tf[:, 1]), atol=1e-7)
+    np.testing.assert_allclose(table[:, 9], res.pf[:, 3], atol=1e-7)
+    assert np.all(table[:, 12] < 1e-9) and np.all(table[:, 13] >= 1)
+    assert "rerun" in p.stderr and rrd.is_file()
+    rerun_bin = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
+    v = subprocess.run([rerun_bin, "rrd", "verify", str(rrd)], capture_output=True, text=True,
+                       env=dict(os.environ, CI="1"), timeout=120)
+    assert v.returncode == 0, v.stderr
+    pr = subprocess.run([rerun_bin, "rrd", "print", str(rrd)], capture_output=True, text=True,
+                        env=dict(os.environ, CI="1"), timeout=120)
+    for entity in ("/knee/femur", "/knee/tibia", "/knee/patella", "/knee/links/acl", "/knee/links/mc",
+                   "/knee/links/patellar_tendon", "/metrics/tf/adduction_deg", "/metrics/pf/flexion_deg"):
+        assert entity in pr.stdout, entity
+
+
+def test_sweep_to_stdout_and_sphere_plane_model():
+    p = run("sweep", "generic-sancisi2017", "--to", 10, "--step", 5)
+    assert p.returncode == 0, p.stderr
+    rows = p.stdout.strip().splitlines()
+    assert rows[0] == HEADER and len(rows) == 4
+    assert rows[1].split(",")[6] == ""  # no patella: PF columns empty
+
+
+def test_sweep_from_a_toml_path(tmp_path):
+    f = tmp_path / "mine.toml"
+    f.write_text(load_model("volunteer").to_toml())
+    p = run("sweep", f, "--from", 10, "--to", 20, "--step", 5, "--out", tmp_path / "m.csv")
+    assert p.returncode == 0, p.stderr
+    assert len((tmp_path / "m.csv").read_text().splitlines()) == 4
+
+
+def test_unknown_model():
+    assert_clean_error(run("sweep", "no-such-knee"), "unknown model 'no-such-knee'")
+
+
+@pytest.mark.parametrize("edit, field", [
+    (("length = 33.05\n", ""), "missing field 'length'"),
+    (("lambda0 = 1.48", "lambda0 = nan"), "field 'lambda0' is not finite"),
+    (('length = "mm"', 'length = "cm"'), 'length must be "mm"'),
+])
+def test_bad_toml(tmp_path, edit, field):
+    text = load_model("volunteer").to_toml()
+    assert edit[0] in text
+    f = tmp_path / "bad.toml"
+    f.write_text(text.replace(edit[0], edit[1], 1))
+    assert_clean_error(run("sweep", f), field, "bad.toml")
+
+
+def test_unreachable_range_writes_the_rows_it_solved(tmp_path, volunteer):
+    out = tmp_path / "part.csv"
+    p = run("sweep", "volunteer", "--from", 120, "--to", 140, "--out", out)
+    hi = np.degrees(volunteer.assembly_range[1])
+    assert_clean_error(p, "sweep stopped", f"stops assembling at {hi:.2f} deg", "last angle solved: 129.00")
+    table = read_sweep_csv(out)
+    np.testing.assert_allclose(table[:, 0], np.arange(120, 130.0))
+
+
+def test_range_outside_assembly(tmp_path):
+    p = run("sweep", "volunteer-initial", "--from", 0, "--to", 30, "--out", tmp_path / "x.csv")
+    assert_clean_error(p, "outside the assembly range 7.32 to 60.04 deg")
+
+
+def test_existing_files_are_not_overwritten(tmp_path):
+    out = tmp_path / "keep.csv"
+    out.write_text("precious")
+    assert_clean_error(run("sweep", "volunteer", "--to", 5, "--out", out), "exists; not overwritten")
+    assert out.read_text() == "precious"
+    assert run("sweep", "volunteer", "--to", 5, "--out", out, "--force").returncode == 0
+    assert out.read_text().startswith("tf_flexion_deg")
+
+
+@pytest.mark.parametrize("args, msg", [
+    (["--step", "0"], "--step must be positive"),
+    (["--step", "-1"], "--step must be positive"),
+    (["--to", "nan"], "--to must be a finite number"),
+    (["--step", "45"], "--step must be at most 10"),
+])
+def test_bad_ranges(args, msg):
+    assert_clean_error(run("sweep", "volunteer", *args), msg)
+
+
+def test_argparse_errors_exit_2():
+    p = run("sweep")
+    assert p.returncode == 2 and "Traceback" not in p.stderr
+
+
+def test_demo(tmp_path):
+    p = run("demo", "--out", tmp_path / "demo")
+    assert p.returncode == 0, p.stderr
+    assert "rerun " in p.stdout and "assembles from" in p.stdout
+    assert (tmp_path / "demo" / "volunteer-sweep.rrd").is_file()
+    assert (tmp_path / "demo" / "volunteer-sweep.csv").is_file()
+    p2 = run("demo", "--out", tmp_path / "demo")  # a second run does not touch the first
+    assert p2.returncode == 0 and (tmp_path / "demo-2" / "volunteer-sweep.rrd").is_file()

@@ -1,0 +1,212 @@
+"""The mechanism solver against independent computations (models.mechanism.reference, the closure
+equations evaluated directly on the poses, finite differences)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from models.mechanism import Mechanism, load_model
+from models.mechanism import compiled
+from models.mechanism import reference as ref
+from toolkit.conventions import joint_to_pose
+from toolkit.errors import AssemblyError
+
+DEG = np.radians
+
+
+def test_sweep_closes_every_link(volunteer):
+    res = volunteer.sweep(DEG(np.arange(0, 126)))
+    assert res.complete and res.tf.shape == (126, 6)
+    assert res.residual.max() < 1e-9
+    p = volunteer.params
+    for q in res.tf[::5]:
+        # eq. 1, evaluated by the independent NumPy code
+        assert np.abs(ref.tf_residuals(p, q[1:], q[0])).max() < 1e-9
+
+
+def test_pf_equations_hold_on_the_poses(volunteer):
+    """Eqs. 2-4 checked directly on the returned poses."""
+    p = volunteer.params
+    f = p.pf
+    res = volunteer.sweep(DEG(np.arange(0, 126, 5)))
+    Ttf, Tpf = res.tf_poses, res.pf_poses
+    nf = f.axis_femur / np.linalg.norm(f.axis_femur)
+    for k in range(res.flexion.size):
+        R, P = Tpf[k, :3, :3], Tpf[k, :3, 3]
+        np.testing.assert_allclose(R @ f.axis_patella, nf, atol=1e-12)                  # eq. 2
+        d = R @ f.point_patella + P - f.point_femur                                      # eq. 3
+        np.testing.assert_allclose(np.cross(d, nf), 0, atol=1e-10)
+        theta = res.psi[k] - volunteer.psi_ref
+        assert d @ nf == pytest.approx(f.lambda0 + f.lambda1 * theta, abs=1e-10)
+        tendon = (R @ f.tendon_patella + P) - (Ttf[k, :3, :3] @ f.tendon_tibia + Ttf[k, :3, 3])
+        assert np.linalg.norm(tendon) == pytest.approx(f.tendon_length, abs=1e-9)       # eq. 4
+
+
+def test_pf_reference_pose(volunteer):
+    """At the reference flexion theta = 0, and the patella is the anterior root."""
+    a_ref = volunteer.params.pf.reference_flexion
+    tf, pf, _ = volunteer.solve(a_ref)
+    res = volunteer.sweep([a_ref])
+    assert res.psi[0] == pytest.approx(volunteer.psi_ref, abs=1e-10)
+    grid = np.linspace(-np.pi, np.pi, 2001)
+    vals = np.array([ref.tendon_residual(volunteer.params, s, 0.0, tf[1:], a_ref) for s in grid])
+    roots = grid[np.nonzero(np.sign(vals[:-1]) != np.sign(vals[1:]))[0]]
+    assert len(roots) >= 2
+    anterior = [ref.pf_pose(volunteer.params, r, 0.0)[1][0] for r in roots]
+    assert pf[3] == pytest.approx(max(anterior), abs=0.5)
+    assert pf[3] > 20  # in front of the femur
+
+
+def test_sweep_matches_independent_least_squares(volunteer):
+    al = DEG(np.arange(0, 121, 4))
+    res = volunteer.sweep(al)
+    tf, pf = ref.solve_sweep_least_squares(volunteer.params, al, res.tf[0, 1:], volunteer.psi_ref, res.psi[0])
+    np.testing.assert_allclose(res.tf, tf, atol=1e-8)
+    np.testing.assert_allclose(res.pf, pf, atol=1e-8)
+
+
+def test_sphere_plane_variant(generic):
+    res = generic.sweep(DEG(np.arange(0, 101, 5)))
+    assert res.complete and res.residual.max() < 1e-9
+    assert np.all(np.isnan(res.pf))
+    p = generic.params
+    for q in res.tf:
+        R, P = joint_to_pose(q)[:3, :3], q[3:]
+        for lk in p.links[3:]:
+            n = lk.normal / np.linalg.norm(lk.normal)
+            dist = n @ (R.T @ (lk.femur - P) - lk.tibia)   # sphere centre to tibial plane
+            assert dist == pytest.approx(lk.length, abs=1e-9)
+    # near the anatomical pose at extension: tibia origin close to the femur's knee centre
+    assert np.abs(res.tf[0, 3:]).max() < 2.0 and abs(res.tf[0, 1]) < DEG(2)
+
+
+def test_assembly_ranges(volunteer):
+    lo, hi = np.degrees(volunteer.assembly_range)
+    assert lo < 0 and hi >= 125.0
+    ini = Mechanism.from_name("volunteer-initial")
+    lo_i, hi_i = np.degrees(ini.assembly_range)
+    assert 0 < lo_i < hi_i < 125  # the first estimate does not assemble at full extension
+    # the ends are real: just inside closes, just outside does not
+    for a in (hi - 1e-3, lo + 1e-3):
+        volunteer.solve(DEG(a))
+    with pytest.raises(AssemblyError, match="outside the assembly range"):
+        volunteer.solve(DEG(hi + 0.01))
+
+
+def test_sweep_stops_early_and_reports(volunteer):
+    res = volunteer.sweep(DEG(np.arange(110, 141, 2.0)))
+    assert res.status == "no-convergence" and not res.complete
+    hi = np.degrees(volunteer.assembly_range[1])
+    assert res.flexion.size == np.sum(np.arange(110, 141, 2.0) <= hi)
+    assert np.degrees(res.limit) == pytest.approx(hi, abs=1e-3)
+    assert "stops assembling at" in res.message and "\n" not in res.message
+    assert res.residual.max() < 1e-9
+    out = volunteer.sweep(DEG([140.0, 141.0]))
+    assert out.status == "out-of-range" and out.flexion.size == 0
+
+
+def test_descending_and_coarse_sweeps_stay_on_the_branch(volunteer):
+    fine = volunteer.sweep(DEG(np.arange(0, 121, 1.0)))
+    down = volunteer.sweep(DEG(np.arange(120, -1, -10.0)))
+    assert down.complete
+    np.testing.assert_allclose(down.tf[::-1], fine.tf[::10], atol=1e-9)
+    np.testing.assert_allclose(down.pf[::-1], fine.pf[::10], atol=1e-9)
+
+
+def test_single_solve_equals_sweep(volunteer):
+    res = volunteer.sweep(DEG([17.0, 63.5, 101.0]))
+    for k, a in enumerate(res.flexion):
+        tf, pf, r = volunteer.solve(a)
+        np.testing.assert_allclose(tf, res.tf[k], atol=1e-10)
+        np.testing.assert_allclose(pf, res.pf[k], atol=1e-10)
+        assert r < 1e-9
+
+
+def test_assembly_modes(volunteer):
+    a = DEG(30.0)
+    modes = volunteer.assembly_modes(a, n_starts=600)
+    assert len(modes) >= 2
+    on_branch = volunteer.solve(a)[0][1:]
+    np.testing.assert_allclose(modes[0], on_branch, atol=1e-6)
+    for m in modes:
+        assert np.abs(ref.tf_residuals(volunteer.params, m, a)).max() < 1e-9
+    for i in range(len(modes)):
+        for j in range(i):
+            assert np.abs(modes[i] - modes[j]).max() > 1e-6
+
+
+def test_jacobian_condition_reported(volunteer):
+    res = volunteer.sweep(DEG(np.arange(0, 130)))
+    assert res.condition.shape == (130,) and np.all(res.condition >= 1)
+    # towards the fold at the end of the range the Jacobian degenerates
+    near = volunteer.sweep(DEG([np.degrees(volunteer.assembly_range[1]) - 1e-4]))
+    assert near.condition[0] > 10 * np.median(res.condition)
+    J = res.jacobian[40]
+    assert res.condition[40] == pytest.approx(np.linalg.cond(J), rel=1e-9)
+
+
+def _fd(mech_params, al, k, h):
+    """Central difference of the sweep with respect to parameter k."""
+    out = []
+    for s in (1, -1):
+        v = mech_params.to_vector()
+        v[k] += s * h
+        m = Mechanism(mech_params.with_vector(v))
+        r = m.sweep(al)
+        out.append(np.column_stack([r.tf, r.pf]))
+    return (out[0] - out[1]) / (2 * h)
+
+
+@pytest.mark.parametrize("k", [2, 9, 13, 39, 49, 54, 62, 68, 69, 70, 71])
+def test_parameter_derivatives_match_finite_differences(volunteer, k):
+    al = DEG(np.array([20.0, 70.0, 110.0]))
+    sens = volunteer.sensitivities(al)
+    h = 1e-5 if k != 71 else 1e-6
+    fd = _fd(volunteer.params, al, k, h)
+    np.testing.assert_allclose(sens.d_params[:, :, k], fd, atol=2e-5, rtol=1e-4)
+
+
+def test_flexion_derivative_matches_finite_differences(volunteer, generic):
+    for m in (volunteer, generic):
+        al = DEG(np.array([10.0, 50.0, 95.0]))
+        h = 1e-6
+        up, dn = m.sweep(al + h), m.sweep(al - h)
+        fd = (np.column_stack([up.tf, up.pf]) - np.column_stack([dn.tf, dn.pf])) / (2 * h)
+        sens = m.sensitivities(al)
+        k = sens.d_flexion.shape[1]
+        np.testing.assert_allclose(sens.d_flexion, fd[:, :k], atol=1e-5)
+        assert np.allclose(sens.d_flexion[:, 0], 1.0)
+
+
+def test_compiled_and_casadi_fallback_agree(tmp_path, monkeypatch):
+    monkeypatch.setenv("KNEE_CACHE_DIR", str(tmp_path))
+    p = load_model("volunteer")
+    b = compiled.Backend(p.kinds, p.has_pf, compile=True)
+    assert b.compiled and b.library.parent == tmp_path and b.library.is_file()
+    again = compiled.Backend(p.kinds, p.has_pf, compile=True)  # from the on-disk cache
+    assert again.library == b.library
+    fast = Mechanism(p, compile=True)
+    slow = Mechanism(p, compile=False)
+    assert fast.compiled and not slow.compiled
+    al = DEG(np.arange(0, 121, 3.0))
+    a, b2 = fast.sweep(al), slow.sweep(al)
+    np.testing.assert_allclose(a.tf, b2.tf, atol=1e-10)
+    np.testing.assert_allclose(a.pf, b2.pf, atol=1e-10)
+    assert fast.assembly_range == pytest.approx(slow.assembly_range, abs=1e-8)
+
+
+def test_no_compiler_falls_back(monkeypatch, tmp_path):
+    monkeypatch.setenv("KNEE_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(compiled, "find_compiler", lambda: None)
+    p = load_model("generic-sancisi2017")
+    b = compiled.Backend(p.kinds, p.has_pf, compile=True)
+    assert not b.compiled and b.library is None
+    assert not list(tmp_path.iterdir())
+
+
+def test_bad_angles(volunteer):
+    with pytest.raises(ValueError, match="finite"):
+        volunteer.sweep([0.0, math.nan])
+    with pytest.raises(ValueError, match="at least one"):
+        volunteer.sweep([])
