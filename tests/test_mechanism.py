@@ -210,3 +210,14 @@ def test_bad_angles(volunteer):
         volunteer.sweep([0.0, math.nan])
     with pytest.raises(ValueError, match="at least one"):
         volunteer.sweep([])
+
+
+def test_stored_initial_pose_is_the_multistart_branch(volunteer):
+    from dataclasses import replace
+
+    p = load_model("volunteer")
+    assert p.initial is not None
+    searched = Mechanism(replace(p, initial=None))
+    al = DEG(np.arange(0, 121, 10.0))
+    np.testing.assert_allclose(searched.sweep(al).tf, volunteer.sweep(al).tf, atol=1e-9)
+    assert searched.assembly_range == pytest.approx(volunteer.assembly_range, abs=1e-8)

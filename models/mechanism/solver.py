@@ -43,6 +43,25 @@ _TABLE_STEP = math.radians(1.0)
 _SEARCH_LIMIT = math.radians(180.0)
 
 
+def condition_numbers(J: np.ndarray) -> np.ndarray:
+    """2-norm condition numbers of (n, k, k) matrices.
+
+    From the eigenvalues of J^T J (faster than a batched SVD); where that gives more than 1e6, where
+    squaring loses accuracy, the SVD is used instead.
+    """
+    if len(J) == 0:
+        return np.zeros(0)
+    e = np.linalg.eigvalsh(np.swapaxes(J, 1, 2) @ J)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = np.sqrt(e[:, -1] / e[:, 0])
+    bad = ~(np.isfinite(c) & (c < 1e6) & (e[:, 0] > 0))
+    if bad.any():
+        sv = np.linalg.svd(J[bad], compute_uv=False)
+        with np.errstate(divide="ignore"):
+            c[bad] = sv[:, 0] / sv[:, -1]
+    return c
+
+
 def _fresh(x, psi, alpha):
     """A continuation state with no history: the previous solution equals the current one."""
     cur = np.r_[x, psi, alpha]
@@ -98,12 +117,7 @@ class SweepResult:
     @property
     def condition(self) -> np.ndarray:
         if self._cond is None:
-            if len(self.jacobian):
-                sv = np.linalg.svd(self.jacobian, compute_uv=False)
-                with np.errstate(divide="ignore"):
-                    self._cond = sv[:, 0] / sv[:, -1]
-            else:
-                self._cond = np.zeros(0)
+            self._cond = condition_numbers(self.jacobian)
         return self._cond
 
     @property
@@ -391,7 +405,7 @@ class Mechanism:
         n, C = al.size, closure.CHUNK
         states = np.empty((n, closure.N_STATE))
         diags = np.empty((n, closure.N_DIAG))
-        state = self._nearest(al[0])
+        start = state = self._nearest(al[0])
         self._claim(sw)
         for k in range(0, n, C):
             m = min(C, n - k)
@@ -405,7 +419,7 @@ class Mechanism:
         # checks, vectorised: convergence, then jumps between branches
         res = np.abs(diags[:, :6] if self.has_pf else diags[:, :5]).max(axis=1)
         bad = ~(res < RESIDUAL_TOL)
-        prev = np.vstack([self._nearest(al[0])[None, :], states[:-1]])
+        prev = np.vstack([start[None, :], states[:-1]])
         with np.errstate(invalid="ignore"):
             d = np.abs(states[:, :5] - prev[:, :5])
         d[:, :2] = np.degrees(d[:, :2])
@@ -417,14 +431,14 @@ class Mechanism:
             jump[1:] = (rate[1:] > JUMP_RATE) & (rate[1:] > JUMP_RATIO * rate[:-1])
         stop = np.nonzero(bad | jump)[0]
         if stop.size == 0:
-            return self._result(al, states, diags, "ok", "", None)
+            return self._result(al, states, diags, "ok", "", None, res)
         k = int(stop[0])
         if bad[k]:
             status = "no-convergence"
         else:
             status = "jump"
         # where does the branch stop assembling? refine between the last good angle and al[k]
-        base = states[k - 1] if k > 0 else self._nearest(al[0])
+        base = states[k - 1] if k > 0 else start
         ends = self._bisect_end(base, al[k], self.has_pf)
         limit = float(ends[-1][6]) if ends else float(base[6])
         last = f"{math.degrees(al[k - 1]):.2f} deg" if k > 0 else "none"
@@ -436,11 +450,12 @@ class Mechanism:
                    f"{math.degrees(limit):.2f} deg (last angle solved: {last})")
         return self._result(al, states[:k], diags[:k], status, msg, limit)
 
-    def _result(self, al, states, diags, status, msg, limit) -> SweepResult:
+    def _result(self, al, states, diags, status, msg, limit, res=None) -> SweepResult:
         n = states.shape[0]
         tf = np.column_stack([states[:, 6], states[:, :5]]) if n else np.zeros((0, 6))
         pf = diags[:, 31:37].copy() if self.has_pf else np.full((n, 6), np.nan)
-        res = np.abs(diags[:, :6] if self.has_pf else diags[:, :5]).max(axis=1) if n else np.zeros(0)
+        if res is None:
+            res = np.abs(diags[:, :6] if self.has_pf else diags[:, :5]).max(axis=1) if n else np.zeros(0)
         J = diags[:, 6:31].reshape(n, 5, 5).transpose(0, 2, 1)  # column-major -> rows
         return SweepResult(requested=al, flexion=tf[:, 0].copy(), tf=tf, pf=pf, residual=res,
                            jacobian=J, psi=states[:, 5].copy(), status=status, message=msg,
