@@ -221,3 +221,31 @@ def test_stored_initial_pose_is_the_multistart_branch(volunteer):
     al = DEG(np.arange(0, 121, 10.0))
     np.testing.assert_allclose(searched.sweep(al).tf, volunteer.sweep(al).tf, atol=1e-9)
     assert searched.assembly_range == pytest.approx(volunteer.assembly_range, abs=1e-8)
+
+
+def test_jump_detector_on_synthetic_paths():
+    from models.mechanism.solver import detect_jumps
+
+    a = DEG(np.arange(1.0, 21.0))
+    x = np.column_stack([0.01 * a, -0.2 + 0.05 * a, 0.3 * np.degrees(a), -27 + 0.0 * a, 0.1 * np.degrees(a)])
+    x0 = np.array([0.0, -0.2, 0.0, -27.0, 0.0])
+    assert not detect_jumps(x0, 0.0, x, a).any()
+    y = x.copy()
+    y[12:, 4] += 5.0  # the lateral translation jumps by 5 mm between 12 and 13 deg: another branch
+    flags = detect_jumps(x0, 0.0, y, a)
+    assert flags.tolist() == [k == 12 for k in range(20)]
+    z = x.copy()
+    z[:, 0] += DEG(0.01) * np.arange(20) ** 2  # fast but smooth (towards a fold): not a jump
+    assert not detect_jumps(x0, 0.0, z, a).any()
+
+
+def test_sweeps_on_the_two_branches_never_mix(volunteer):
+    """The other root at each angle is a different branch: continuation from the default branch never
+    reaches it, at any step size up to 10 degrees."""
+    al = DEG(np.arange(0.0, 121.0, 10.0))
+    res = volunteer.sweep(al)
+    for k, a in enumerate(al):
+        modes = volunteer.assembly_modes(a, n_starts=400)
+        others = [m for m in modes if np.abs(m - res.tf[k, 1:]).max() > 1e-6]
+        assert others, "expected the second branch"
+        assert min(np.abs(m - res.tf[k, 1:]).max() for m in others) > 1e-3

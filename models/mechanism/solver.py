@@ -43,6 +43,37 @@ _TABLE_STEP = math.radians(1.0)
 _SEARCH_LIMIT = math.radians(180.0)
 
 
+def detect_jumps(x0, a0, x, alpha) -> np.ndarray:
+    """Flag steps where a continuation path jumps to another branch.
+
+    Parameters
+    ----------
+    x0 : (5,) float and a0 : float
+        The TF unknowns and flexion the path starts from.
+    x : (n, 5) float and alpha : (n,) float
+        The TF unknowns (rad, mm) solved at each flexion (rad).
+
+    Returns
+    -------
+    (n,) bool
+        True where the rate of change of the unknowns (mm, or degrees, per degree of flexion) exceeds
+        both ``JUMP_RATE`` and ``JUMP_RATIO`` times the previous step's rate.
+    """
+    x = np.asarray(x, dtype=float)
+    alpha = np.asarray(alpha, dtype=float)
+    prev_x = np.vstack([np.asarray(x0, float)[None, :], x[:-1]])
+    prev_a = np.r_[a0, alpha[:-1]]
+    with np.errstate(invalid="ignore"):
+        d = np.abs(x - prev_x)
+        d[:, :2] = np.degrees(d[:, :2])
+        da = np.degrees(np.abs(alpha - prev_a))
+        rate = d.max(axis=1) / np.maximum(da, 1e-12)
+        rate[da < 1e-9] = 0.0
+        jump = np.zeros(x.shape[0], bool)
+        jump[1:] = (rate[1:] > JUMP_RATE) & (rate[1:] > JUMP_RATIO * rate[:-1])
+    return jump
+
+
 def condition_numbers(J: np.ndarray) -> np.ndarray:
     """2-norm condition numbers of (n, k, k) matrices.
 
@@ -419,16 +450,7 @@ class Mechanism:
         # checks, vectorised: convergence, then jumps between branches
         res = np.abs(diags[:, :6] if self.has_pf else diags[:, :5]).max(axis=1)
         bad = ~(res < RESIDUAL_TOL)
-        prev = np.vstack([start[None, :], states[:-1]])
-        with np.errstate(invalid="ignore"):
-            d = np.abs(states[:, :5] - prev[:, :5])
-        d[:, :2] = np.degrees(d[:, :2])
-        da = np.degrees(np.abs(al - prev[:, 6]))
-        with np.errstate(invalid="ignore"):
-            rate = d.max(axis=1) / np.maximum(da, 1e-12)
-            rate[da < 1e-9] = 0.0
-            jump = np.zeros(n, bool)
-            jump[1:] = (rate[1:] > JUMP_RATE) & (rate[1:] > JUMP_RATIO * rate[:-1])
+        jump = detect_jumps(start[:5], start[6], states[:, :5], al)
         stop = np.nonzero(bad | jump)[0]
         if stop.size == 0:
             return self._result(al, states, diags, "ok", "", None, res)
