@@ -1,0 +1,221 @@
+"""Co-rotational linear hexahedra and tetrahedra, vectorised over elements.
+
+Shapes: ``X`` rest node positions ``(N, 3)``, ``x`` current positions ``(N, 3)``, ``cells`` node indices
+``(E, 8)`` (hexahedra) or ``(E, 4)`` (tetrahedra); element matrices ``(E, 3n, 3n)`` with the DOFs of a
+node contiguous (node a's x, y, z at 3a, 3a+1, 3a+2). Units mm, MPa, N.
+
+Co-rotational force of an element (seed 000, eq. 1): ``f = R K (R^T x - X)``, where K is the linear
+stiffness of the rest shape and R the element's rotation from rest to now. The tangent used by the
+implicit solver is ``R K R^T``. Because K annihilates rigid translations, a rigid motion of the element
+(x = Q X + t) gives R = Q and zero force, to rounding.
+
+Rotations:
+
+* tetrahedron, QR (Nesme et al. 2005, as SOFA's "large" method): a frame from the edges (p1 - p0) and
+  (p2 - p0) by Gram-Schmidt, ``R = F(x) F(X)^T``;
+* hexahedron, from the mean element edges (as SOFA's hexahedron "large" method): the mean of the four
+  edges along the first local direction and of the four along the second, Gram-Schmidt, then
+  ``R = F(x) F(X)^T``.
+
+Hexahedron node order (local coordinates in {-1, 1}^3):
+0 (-,-,-), 1 (+,-,-), 2 (+,+,-), 3 (-,+,-), 4 (-,-,+), 5 (+,-,+), 6 (+,+,+), 7 (-,+,+).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from toolkit.errors import KneeInputError
+
+HEX_CORNERS = np.array([[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1],
+                        [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], dtype=float)
+_HEX_EDGES_1 = np.array([[0, 1], [3, 2], [4, 5], [7, 6]])  # along the first local direction
+_HEX_EDGES_2 = np.array([[0, 3], [1, 2], [4, 7], [5, 6]])  # along the second
+_GAUSS = HEX_CORNERS / np.sqrt(3.0)  # 2x2x2 points, weights 1
+
+
+def _b_matrix(dN: np.ndarray) -> np.ndarray:
+    """Strain-displacement matrices from shape-function gradients ``dN`` (..., n, 3) -> (..., 6, 3n)."""
+    n = dN.shape[-2]
+    B = np.zeros(dN.shape[:-2] + (6, 3 * n))
+    dx, dy, dz = dN[..., 0], dN[..., 1], dN[..., 2]
+    B[..., 0, 0::3] = dx
+    B[..., 1, 1::3] = dy
+    B[..., 2, 2::3] = dz
+    B[..., 3, 0::3] = dy
+    B[..., 3, 1::3] = dx
+    B[..., 4, 1::3] = dz
+    B[..., 4, 2::3] = dy
+    B[..., 5, 0::3] = dz
+    B[..., 5, 2::3] = dx
+    return B
+
+
+def tet_gradients(Xe: np.ndarray):
+    """Shape-function gradients and volumes of linear tetrahedra.
+
+    Parameters
+    ----------
+    Xe : (E, 4, 3) float
+
+    Returns
+    -------
+    dN : (E, 4, 3) float and volume : (E,) float (positive for positively oriented tetrahedra)
+    """
+    Dm = np.swapaxes(Xe[:, 1:] - Xe[:, :1], 1, 2)  # columns = edges
+    vol = np.linalg.det(Dm) / 6.0
+    if np.any(np.abs(vol) < 1e-12):
+        raise KneeInputError("degenerate tetrahedron (zero volume) in the mesh")
+    Dinv = np.linalg.inv(Dm)  # rows = gradients of barycentric coordinates 1..3
+    dN = np.empty(Xe.shape)
+    dN[:, 1:] = Dinv
+    dN[:, 0] = -Dinv.sum(axis=1)
+    return dN, vol
+
+
+def tet_stiffness(X: np.ndarray, cells: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """Linear stiffness of tetrahedra, (E, 12, 12): ``V B^T D B``."""
+    dN, vol = tet_gradients(X[cells])
+    B = _b_matrix(dN)
+    return np.abs(vol)[:, None, None] * np.einsum("eki,kl,elj->eij", B, D, B)
+
+
+def hex_gradients(Xe: np.ndarray):
+    """Shape-function gradients at the 2x2x2 Gauss points of trilinear hexahedra.
+
+    Parameters
+    ----------
+    Xe : (E, 8, 3) float
+
+    Returns
+    -------
+    dN : (E, 8 gauss, 8 nodes, 3) float and detJ : (E, 8) float
+    """
+    g = _GAUSS
+    c = HEX_CORNERS
+    # dN/dxi at Gauss point q for node a: c_a,k/8 * prod_{j != k} (1 + c_a,j xi_q,j)
+    t = 1.0 + c[None, :, :] * g[:, None, :]  # (q, a, 3)
+    dxi = np.empty((8, 8, 3))
+    dxi[..., 0] = c[None, :, 0] * t[..., 1] * t[..., 2] / 8
+    dxi[..., 1] = c[None, :, 1] * t[..., 0] * t[..., 2] / 8
+    dxi[..., 2] = c[None, :, 2] * t[..., 0] * t[..., 1] / 8
+    J = np.einsum("qak,eaj->eqkj", dxi, Xe)  # J[k, j] = d x_j / d xi_k
+    detJ = np.linalg.det(J)
+    if np.any(detJ <= 0):
+        raise KneeInputError("inverted or degenerate hexahedron (non-positive Jacobian) in the grid")
+    dN = np.einsum("eqjk,qak->eqaj", np.linalg.inv(J), dxi)
+    return dN, detJ
+
+
+def hex_stiffness(X: np.ndarray, cells: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """Linear stiffness of trilinear hexahedra by 2x2x2 Gauss quadrature, (E, 24, 24)."""
+    dN, detJ = hex_gradients(X[cells])
+    B = _b_matrix(dN)  # (E, q, 6, 24)
+    return np.einsum("eq,eqki,kl,eqlj->eij", detJ, B, D, B)
+
+
+def _frames(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Orthonormal frames (E, 3, 3), columns (x, y, z), from directions a and b by Gram-Schmidt."""
+    x = a / np.linalg.norm(a, axis=1, keepdims=True)
+    z = np.cross(x, b)
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    y = np.cross(z, x)
+    return np.stack([x, y, z], axis=2)
+
+
+def tet_frames(xe: np.ndarray) -> np.ndarray:
+    """QR frames of tetrahedra (E, 4, 3) -> (E, 3, 3)."""
+    return _frames(xe[:, 1] - xe[:, 0], xe[:, 2] - xe[:, 0])
+
+
+def hex_frames(xe: np.ndarray) -> np.ndarray:
+    """Mean-edge frames of hexahedra (E, 8, 3) -> (E, 3, 3)."""
+    e1 = (xe[:, _HEX_EDGES_1[:, 1]] - xe[:, _HEX_EDGES_1[:, 0]]).mean(axis=1)
+    e2 = (xe[:, _HEX_EDGES_2[:, 1]] - xe[:, _HEX_EDGES_2[:, 0]]).mean(axis=1)
+    return _frames(e1, e2)
+
+
+class CorotationalElements:
+    """A set of co-rotational elements of one kind sharing a node array.
+
+    Parameters
+    ----------
+    X : (N, 3) float
+        Rest positions (mm).
+    cells : (E, 4) or (E, 8) int
+        Tetrahedra or hexahedra.
+    E, nu : float
+        Young's modulus (MPa) and Poisson's ratio.
+    weights : (E,) float, optional
+        Per-element stiffness factors (for example the fill fraction of boundary grid cells).
+    """
+
+    def __init__(self, X, cells, E, nu, weights=None):
+        from models.fem.material import elasticity_matrix
+
+        self.X = np.asarray(X, dtype=float)
+        self.cells = np.asarray(cells, dtype=np.int64)
+        if self.cells.ndim != 2 or self.cells.shape[1] not in (4, 8):
+            raise KneeInputError(f"cells must be (E, 4) tetrahedra or (E, 8) hexahedra, got {self.cells.shape}")
+        if self.cells.size and (self.cells.min() < 0 or self.cells.max() >= len(self.X)):
+            raise KneeInputError("cells refer to nodes that do not exist")
+        self.kind = "tet" if self.cells.shape[1] == 4 else "hex"
+        D = elasticity_matrix(E, nu)
+        stiff = tet_stiffness if self.kind == "tet" else hex_stiffness
+        self.K = stiff(self.X, self.cells, D)
+        if weights is not None:
+            self.K = self.K * np.asarray(weights, float)[:, None, None]
+        self._frames = tet_frames if self.kind == "tet" else hex_frames
+        self._F0 = self._frames(self.X[self.cells])
+        self.R = np.broadcast_to(np.eye(3), (len(self.cells), 3, 3)).copy()
+
+    @property
+    def n_nodes_per_element(self) -> int:
+        return self.cells.shape[1]
+
+    def update_rotations(self, x: np.ndarray) -> np.ndarray:
+        """Element rotations (E, 3, 3) from current positions ``x`` (N, 3); stored in ``self.R``."""
+        self.R = self._frames(np.asarray(x, float)[self.cells]) @ np.swapaxes(self._F0, 1, 2)
+        return self.R
+
+    def element_forces(self, x: np.ndarray, corotational: bool = True) -> np.ndarray:
+        """Internal (restoring) forces per element node, (E, n, 3): ``-R K (R^T x - X)``.
+
+        With ``corotational=False``, the small-strain force ``-K (x - X)`` (for comparison).
+        """
+        xe = np.asarray(x, float)[self.cells]
+        Xe = self.X[self.cells]
+        E, n = self.cells.shape
+        if corotational:
+            R = self.update_rotations(x)
+            u = np.einsum("eji,eaj->eai", R, xe) - Xe  # R^T x - X
+            f = np.einsum("eij,ej->ei", self.K, u.reshape(E, 3 * n)).reshape(E, n, 3)
+            return -np.einsum("eij,eaj->eai", R, f)
+        u = (xe - Xe).reshape(E, 3 * n)
+        return -np.einsum("eij,ej->ei", self.K, u).reshape(E, n, 3)
+
+    def forces(self, x: np.ndarray, corotational: bool = True) -> np.ndarray:
+        """Internal forces gathered on the nodes, (N, 3)."""
+        fe = self.element_forces(x, corotational)
+        out = np.zeros((len(self.X), 3))
+        np.add.at(out, self.cells, fe)
+        return out
+
+    def rotated_stiffness(self) -> np.ndarray:
+        """Element tangents ``R K R^T`` for the current rotations, (E, 3n, 3n)."""
+        E, n = self.cells.shape
+        K = self.K.reshape(E, n, 3, n, 3)
+        Kr = np.einsum("eij,eajbk,elk->eaibl", self.R, K, self.R)
+        return Kr.reshape(E, 3 * n, 3 * n)
+
+
+def element_strains(X: np.ndarray, cells: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Small strains (Voigt, engineering shear) of displacement ``u`` (N, 3): at the 2x2x2 Gauss points
+    of hexahedra, (E, 8, 6), or once per tetrahedron, (E, 1, 6)."""
+    cells = np.asarray(cells)
+    ue = np.asarray(u, float)[cells].reshape(len(cells), -1)
+    if cells.shape[1] == 4:
+        dN, _ = tet_gradients(np.asarray(X, float)[cells])
+        return np.einsum("eij,ej->ei", _b_matrix(dN), ue)[:, None, :]
+    dN, _ = hex_gradients(np.asarray(X, float)[cells])
+    return np.einsum("eqij,ej->eqi", _b_matrix(dN), ue)
