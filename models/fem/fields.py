@@ -1,0 +1,186 @@
+"""Force fields of the association model, each acting on the grid's nodes (N, 3).
+
+Every field offers ``forces(x)`` (N, 3) at grid positions x (updating its rotations), ``apply(p)`` the
+product of its stiffness (tangent, at the last rotations) with a grid vector p (N, 3), and ``matrix()`` the
+same stiffness as a sparse (3N, 3N) matrix (used to refresh the preconditioner). Internal forces are
+restoring: ``forces`` returns -K (R^T x - X) rotated back, so a stretched element pulls its nodes in.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from models.fem.assembly import PatternAssembler
+from models.fem.elements import CorotationalElements
+from models.fem.mapping import TrilinearMapping
+
+
+class _Scatter:
+    """Gather node values per element and scatter element values back, with a fixed sparse map."""
+
+    def __init__(self, cells, n_nodes):
+        E, n = cells.shape
+        dof = (3 * cells[:, :, None] + np.arange(3)).ravel()
+        self.S = sp.csr_matrix((np.ones(dof.size), (dof, np.arange(dof.size))), shape=(3 * n_nodes, dof.size))
+        self.cells = cells
+
+    def gather(self, p):
+        return np.asarray(p)[self.cells]
+
+    def scatter(self, fe):
+        return (self.S @ fe.ravel()).reshape(-1, 3)
+
+
+def _apply_corot(el: CorotationalElements, pe: np.ndarray) -> np.ndarray:
+    """R K R^T applied to element vectors pe (E, n, 3)."""
+    E, n = el.cells.shape
+    loc = np.einsum("eji,eaj->eai", el.R, pe).reshape(E, 3 * n)
+    kl = np.einsum("eij,ej->ei", el.K, loc).reshape(E, n, 3)
+    return np.einsum("eij,eaj->eai", el.R, kl)
+
+
+class GridElasticity:
+    """Co-rotational hexahedra of the soft-tissue grid (weights scale boundary cells)."""
+
+    def __init__(self, grid, E=1.0, nu=0.3):
+        self.el = CorotationalElements(grid.X, grid.cells, E, nu, weights=grid.weights)
+        self.sc = _Scatter(grid.cells, grid.n_nodes)
+        self.asm = PatternAssembler(grid.cells, grid.n_nodes)
+
+    def forces(self, x):
+        return self.sc.scatter(self.el.element_forces(x))
+
+    def apply(self, p):
+        return self.sc.scatter(_apply_corot(self.el, self.sc.gather(p)))
+
+    def matrix(self):
+        return self.asm.assemble(self.el.rotated_stiffness())
+
+
+class MappedBoneElasticity:
+    """Co-rotational tetrahedra of a bone whose nodes are embedded in the grid (x_bone = J x_grid);
+    forces return through J^T and the stiffness enters as J^T K J."""
+
+    def __init__(self, grid, X_bone, tets, E=1500.0, nu=0.3):
+        self.map = TrilinearMapping(grid, X_bone)
+        self.el = CorotationalElements(X_bone, tets, E, nu)
+        self.sc = _Scatter(np.asarray(tets), len(X_bone))
+        self.asm = PatternAssembler(np.asarray(tets), len(X_bone))
+
+    def bone_positions(self, x):
+        return self.map.apply(x)
+
+    def forces(self, x):
+        xb = self.map.apply(x)
+        return self.map.apply_transpose(self.sc.scatter(self.el.element_forces(xb)))
+
+    def apply(self, p):
+        pb = self.map.apply(p)
+        return self.map.apply_transpose(self.sc.scatter(_apply_corot(self.el, self.sc.gather(pb))))
+
+    def matrix(self):
+        Kb = self.asm.assemble(self.el.rotated_stiffness())
+        J3 = self.map.J3
+        return (J3.T @ Kb @ J3).tocsr()
+
+
+class MappedSprings:
+    """Linear springs between pairs of embedded points (e.g. collateral ligaments).
+
+    ``a``, ``b`` (S, 3) rest positions of the two ends; ``k`` (N/mm); rest length = the rest distance
+    unless ``rest_length`` is given. Tangent: k n n^T + k (1 - L0/l) (I - n n^T) (the second term only
+    when stretched, which keeps it positive semi-definite).
+    """
+
+    def __init__(self, grid, a, b, k=1000.0, rest_length=None):
+        a, b = np.atleast_2d(a), np.atleast_2d(b)
+        self.ma, self.mb = TrilinearMapping(grid, a), TrilinearMapping(grid, b)
+        self.k = float(k)
+        self.L0 = np.linalg.norm(b - a, axis=1) if rest_length is None else np.atleast_1d(rest_length)
+        self._K = np.zeros((len(a), 3, 3))
+        self.n = grid.n_nodes
+
+    def forces(self, x):
+        pa, pb = self.ma.apply(x), self.mb.apply(x)
+        d = pb - pa
+        ln = np.maximum(np.linalg.norm(d, axis=1), 1e-12)
+        nrm = d / ln[:, None]
+        f = (self.k * (ln - self.L0))[:, None] * nrm  # on a, towards b when stretched
+        ratio = np.clip(1 - self.L0 / ln, 0, None)
+        nn = nrm[:, :, None] * nrm[:, None, :]
+        self._K = self.k * (nn + ratio[:, None, None] * (np.eye(3) - nn))
+        return self.ma.apply_transpose(f) - self.mb.apply_transpose(f)
+
+    def apply(self, p):
+        dp = self.mb.apply(p) - self.ma.apply(p)
+        g = np.einsum("sij,sj->si", self._K, dp)
+        return self.mb.apply_transpose(g) - self.ma.apply_transpose(g)
+
+    def matrix(self):
+        D = (self.mb.J3 - self.ma.J3).tocsr()
+        blocks = sp.block_diag(list(self._K), format="csr")
+        return (D.T @ blocks @ D).tocsr()
+
+
+class MappedPenaltyContact:
+    """Penalty repulsion between surface points of one bone and the surface of another (seed 000: forces
+    when the bones come within ``distance`` mm of each other).
+
+    For each point of A closer than ``distance`` to a point of B (nearest neighbour among B's points),
+    a force ``k (distance - d)`` pushes the pair apart along their separation.
+    """
+
+    def __init__(self, grid, points_a, points_b, k=50.0, distance=10.0):
+        from scipy.spatial import cKDTree
+
+        self.ma, self.mb = TrilinearMapping(grid, points_a), TrilinearMapping(grid, points_b)
+        self.k, self.distance = float(k), float(distance)
+        self._tree_cls = cKDTree
+        # activation distance per point of A: 10 mm, or its rest distance to B if closer (bones that
+        # touch at rest are force-free at rest)
+        d0, _ = cKDTree(np.atleast_2d(points_b)).query(np.atleast_2d(points_a))
+        self.reach = np.minimum(self.distance, d0)
+        self._pairs = (np.zeros(0, int), np.zeros(0, int))
+        self._nrm = np.zeros((0, 3))
+        self.active = 0
+
+    def forces(self, x):
+        pa, pb = self.ma.apply(x), self.mb.apply(x)
+        d, j = self._tree_cls(pb).query(pa, distance_upper_bound=self.distance)
+        i = np.nonzero(d < self.reach)[0]
+        j = j[i]
+        sep = pa[i] - pb[j]
+        ln = np.maximum(np.linalg.norm(sep, axis=1), 1e-9)
+        nrm = sep / ln[:, None]
+        mag = self.k * (self.reach[i] - ln)
+        self._pairs, self._nrm, self.active = (i, j), nrm, i.size
+        fa = np.zeros_like(pa)
+        fb = np.zeros_like(pb)
+        np.add.at(fa, i, mag[:, None] * nrm)
+        np.add.at(fb, j, -mag[:, None] * nrm)
+        return self.ma.apply_transpose(fa) + self.mb.apply_transpose(fb)
+
+    def _dmat(self):
+        i, j = self._pairs
+        Ja = self.ma.J[i]
+        Jb = self.mb.J[j]
+        return (Ja - Jb).tocsr()
+
+    def apply(self, p):
+        i, j = self._pairs
+        if i.size == 0:
+            return np.zeros_like(p)
+        D = self._dmat()
+        dp = D @ p
+        g = self.k * np.einsum("si,si->s", self._nrm, dp)[:, None] * self._nrm
+        return D.T @ g
+
+    def matrix(self):
+        i, _ = self._pairs
+        n3 = 3 * self.ma.J.shape[1]
+        if i.size == 0:
+            return sp.csr_matrix((n3, n3))
+        D3 = sp.kron(self._dmat(), sp.identity(3), format="csr")
+        nn = self.k * self._nrm[:, :, None] * self._nrm[:, None, :]
+        return (D3.T @ sp.block_diag(list(nn), format="csr") @ D3).tocsr()

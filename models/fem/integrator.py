@@ -1,0 +1,117 @@
+"""Implicit Euler (seed 000, eqs. 2-3) with lumped mass and Rayleigh damping.
+
+One linear solve per step: with C = a M + b K and the forces linearised about the current positions,
+
+    ((1 + dt a) M + (dt b + dt^2) K) v' = M v + dt f(x),     x' = x + dt v'.
+
+The matrix is never assembled per step: the conjugate-gradient solve applies the co-rotated element
+stiffnesses directly (gather, element products, scatter), warm-started from the last velocity and
+preconditioned with a sparse LU factorisation of the assembled matrix, which is kept across steps and
+refreshed (assembled on the fixed pattern, refactorised) only when CG needs more than
+``refresh_iterations`` iterations.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+
+@dataclass
+class StepInfo:
+    iterations: int
+    refreshed: bool
+    residual: float
+
+
+class ImplicitEuler:
+    """Integrate ``x, v`` (N, 3) under ``fields`` plus an external-force callback.
+
+    Parameters
+    ----------
+    mass : (N,) float
+        Lumped nodal masses (tonne, with mm, N, s).
+    fields : list
+        Objects with ``forces(x)``, ``apply(p)`` and ``matrix()`` (see :mod:`models.fem.fields`).
+    dt : float
+        Time step (s); the paper's 0.05.
+    rayleigh_mass, rayleigh_stiffness : float
+        Rayleigh damping coefficients a (1/s) and b (s).
+    """
+
+    def __init__(self, x0, mass, fields, dt=0.05, rayleigh_mass=0.1, rayleigh_stiffness=0.1,
+                 tol=1e-8, max_iterations=200, refresh_iterations=25, fixed=None):
+        self.x = np.array(x0, dtype=float)
+        self.fixed = np.zeros(len(self.x), bool) if fixed is None else np.asarray(fixed, bool)
+        self._free = np.repeat(~self.fixed, 3).astype(float)
+        self.v = np.zeros_like(self.x)
+        self.m = np.asarray(mass, dtype=float)
+        self.fields = list(fields)
+        self.dt = float(dt)
+        self.a, self.b = float(rayleigh_mass), float(rayleigh_stiffness)
+        self.tol, self.max_iterations, self.refresh_iterations = tol, max_iterations, refresh_iterations
+        self._lu = None
+        self.time = 0.0
+        self.steps = 0
+        self.refreshes = 0
+
+    @property
+    def _cm(self):
+        return 1.0 + self.dt * self.a
+
+    @property
+    def _ck(self):
+        return self.dt * self.b + self.dt * self.dt
+
+    def _operator(self, p):
+        """A p on the free DOFs, identity on the fixed ones (velocities held at zero)."""
+        q = p * self._free.reshape(-1, 3)
+        out = self._cm * self.m[:, None] * q
+        for f in self.fields:
+            out += self._ck * f.apply(q)
+        out = out * self._free.reshape(-1, 3) + p * (1 - self._free.reshape(-1, 3))
+        return out
+
+    def _refresh(self):
+        K = sum((f.matrix() for f in self.fields), sp.csr_matrix((3 * len(self.m),) * 2))
+        A = (sp.diags(np.repeat(self._cm * self.m, 3)) + self._ck * K).tocsr()
+        P = sp.diags(self._free)
+        A = (P @ A @ P + sp.diags(1 - self._free)).tocsc()
+        self._lu = spla.splu(A)
+        self.refreshes += 1
+
+    def step(self, external=None) -> StepInfo:
+        """One step; ``external(x)`` returns external forces (N, 3) or None."""
+        x = self.x
+        f = sum(fl.forces(x) for fl in self.fields)
+        if external is not None:
+            fe = external(x)
+            if fe is not None:
+                f = f + fe
+        rhs = (self.m[:, None] * self.v + self.dt * f).ravel() * self._free
+        n = rhs.size
+        A = spla.LinearOperator((n, n), matvec=lambda p: self._operator(p.reshape(-1, 3)).ravel())
+        refreshed = False
+        if self._lu is None:
+            self._refresh()
+            refreshed = True
+        its = [0]
+
+        def count(_):
+            its[0] += 1
+
+        M = spla.LinearOperator((n, n), matvec=self._lu.solve)
+        v, _ = spla.cg(A, rhs, x0=self.v.ravel(), M=M, rtol=self.tol, maxiter=self.max_iterations,
+                       callback=count)
+        if its[0] > self.refresh_iterations and not refreshed:
+            self._refresh()
+            refreshed = True
+        self.v = v.reshape(-1, 3)
+        self.x = x + self.dt * self.v
+        self.time += self.dt
+        self.steps += 1
+        res = float(np.linalg.norm(A @ v - rhs) / max(np.linalg.norm(rhs), 1e-300))
+        return StepInfo(iterations=its[0], refreshed=refreshed, residual=res)

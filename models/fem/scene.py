@@ -1,0 +1,112 @@
+"""The association model of a phantom knee (seed 000): grid + embedded bones + springs + contact.
+
+Built from a mechanism parameter set at extension (femur frame). Defaults are the paper's: soft tissue
+E = 1 MPa, nu = 0.3; bone E = 1500 MPa, nu = 0.3; collateral springs 1000 N/mm with rest length at
+extension; bone-bone penalty within 10 mm; dt = 0.05 s.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from models.fem.bones import tetrahedralize_to_count
+from models.fem.fields import GridElasticity, MappedBoneElasticity, MappedPenaltyContact, MappedSprings
+from models.fem.grid import build_grid
+from models.fem.integrator import ImplicitEuler
+from models.mechanism.solver import Mechanism
+from models.phantom import build_phantom
+from toolkit.conventions import joint_to_pose, transform_points
+
+SOFT_DENSITY = 1.0e-9   # tonne/mm^3 (1000 kg/m^3)
+BONE_DENSITY = 1.9e-9   # tonne/mm^3
+
+
+@dataclass
+class FemSettings:
+    n_across: int = 7
+    element_size: float = 12.0
+    n_along: int | None = None
+    soft_E: float = 1.0
+    soft_nu: float = 0.3
+    bone_E: float = 1500.0
+    bone_nu: float = 0.3
+    spring_k: float = 1000.0
+    contact_k: float = 50.0
+    contact_distance: float = 10.0
+    dt: float = 0.05
+    rayleigh_mass: float = 0.1
+    rayleigh_stiffness: float = 0.1
+    bone_tets: tuple = (400, 700)
+
+
+@dataclass
+class AssociationModel:
+    grid: object
+    femur: MappedBoneElasticity
+    tibia: MappedBoneElasticity
+    springs: MappedSprings
+    contact: MappedPenaltyContact
+    soft: GridElasticity
+    solver: ImplicitEuler
+    skin_vertices: np.ndarray
+    skin_faces: np.ndarray
+    femur_surface: object
+    tibia_surface: object
+    settings: FemSettings = field(default_factory=FemSettings)
+
+    @property
+    def x(self):
+        return self.solver.x
+
+
+def lumped_mass(grid, bones, soft_density=SOFT_DENSITY, bone_density=BONE_DENSITY) -> np.ndarray:
+    """Nodal masses (N,): each grid cell's mass (volume x inside fraction) split over its 8 nodes, plus
+    each bone tetrahedron's mass split over its 4 nodes and carried to the grid by J^T (row lumping)."""
+    vol = np.prod(grid.spacing) * grid.weights
+    m = np.bincount(grid.cells.ravel(), weights=np.repeat(soft_density * vol / 8, 8), minlength=grid.n_nodes)
+    for b in bones:
+        p = b.el.X[b.el.cells]
+        tv = np.abs(np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0])) / 6
+        mb = np.bincount(b.el.cells.ravel(), weights=np.repeat(bone_density * tv / 4, 4), minlength=len(b.el.X))
+        m += b.map.J.T @ mb
+    return m
+
+
+def build_association_model(mech: Mechanism, settings: FemSettings | None = None) -> AssociationModel:
+    """The model of ``mech``'s phantom at full extension (0 deg flexion), in the femur frame."""
+    s = settings or FemSettings()
+    ph = build_phantom(mech.params)
+    tf, _, _ = mech.solve(0.0)
+    T = joint_to_pose(tf)
+    skin = ph.skin(T)
+    grid = build_grid(skin, s.n_across, s.element_size, s.n_along)
+    tibia_surface = ph.tibia.copy().apply_transform(T)
+    Xf, Tf, _ = tetrahedralize_to_count(ph.femur, s.bone_tets)
+    Xt, Tt, _ = tetrahedralize_to_count(tibia_surface, s.bone_tets)
+    femur = MappedBoneElasticity(grid, Xf, Tf, s.bone_E, s.bone_nu)
+    tibia = MappedBoneElasticity(grid, Xt, Tt, s.bone_E, s.bone_nu)
+    soft = GridElasticity(grid, s.soft_E, s.soft_nu)
+    # collateral springs: MCL from the mechanism's MCL link; LCL from the lateral femoral epicondyle
+    # region to the lateral tibia 45 mm below the femur origin (phantom attachments)
+    mcl = mech.params.link("mcl")
+    fv, tv = ph.femur.vertices, tibia_surface.vertices
+    lat_f = fv[np.argmax(fv[:, 2] - 0.5 * np.abs(fv[:, 1]))]
+    band = np.abs(tv[:, 1] - (T[1, 3] - 45.0)) < 8.0
+    lat_t = tv[band][np.argmax(tv[band][:, 2])]
+    a = np.vstack([mcl.femur, lat_f])
+    b = np.vstack([transform_points(T, mcl.tibia[None, :])[0], lat_t])
+    springs = MappedSprings(grid, a, b, s.spring_k)
+    # contact: distal femur and proximal tibia surface points
+    fpts = fv[fv[:, 1] < 20.0]
+    tpts = tv[tv[:, 1] > T[1, 3] - 30.0]
+    contact = MappedPenaltyContact(grid, fpts, tpts, s.contact_k, s.contact_distance)
+    mass = lumped_mass(grid, [femur, tibia])
+    # the thigh is held (as in a leg holder): the grid's most proximal layer of nodes is fixed
+    fixed = grid.X[:, 1] > grid.X[:, 1].max() - 1e-6
+    solver = ImplicitEuler(grid.X, mass, [soft, femur, tibia, springs, contact], s.dt, s.rayleigh_mass,
+                           s.rayleigh_stiffness, fixed=fixed)
+    return AssociationModel(grid=grid, femur=femur, tibia=tibia, springs=springs, contact=contact, soft=soft,
+                            solver=solver, skin_vertices=np.asarray(skin.vertices), skin_faces=np.asarray(skin.faces),
+                            femur_surface=ph.femur, tibia_surface=tibia_surface, settings=s)

@@ -1,0 +1,67 @@
+"""Grid, mapping and bone meshes of the association model: exactness checks."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from models.fem.bones import tetrahedralize, tetrahedralize_to_count
+from models.fem.geometry import SurfaceQuery
+from models.fem.grid import BOUNDARY, INSIDE, build_grid
+from models.fem.mapping import TrilinearMapping
+
+
+@pytest.fixture(scope="module")
+def capsule_grid():
+    skin = trimesh.creation.capsule(height=200.0, radius=50.0, count=[32, 32])
+    skin.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))  # along y
+    return skin, build_grid(skin, n_across=7, element_size=15.0)
+
+
+def test_grid_encloses_the_skin(capsule_grid):
+    skin, g = capsule_grid
+    assert g.shape[0] == g.shape[2] == 7 and g.shape[1] == int(np.ceil((300 + 2) / 15.0))
+    assert set(np.unique(g.status)) <= {INSIDE, BOUNDARY}
+    assert np.all((g.weights > 0) & (g.weights <= 1))
+    assert np.all(g.weights[g.status == INSIDE] == 1)
+    # the kept volume (weighted) approximates the skin's volume
+    vol = np.prod(g.spacing) * g.weights.sum()
+    assert vol == pytest.approx(skin.volume, rel=0.05)
+    m = TrilinearMapping(g, skin.vertices)
+    assert m.outside == 0
+
+
+def test_mapping_reproduces_affine_fields_and_is_consistent(capsule_grid):
+    skin, g = capsule_grid
+    rng = np.random.default_rng(0)
+    pts = skin.sample(500, seed=1) * 0.9
+    m = TrilinearMapping(g, pts)
+    np.testing.assert_allclose(np.asarray(m.J.sum(axis=1)).ravel(), 1.0, atol=1e-12)
+    A = rng.normal(size=(3, 3))
+    t = rng.normal(size=3)
+    np.testing.assert_allclose(m.apply(g.X @ A.T + t), pts @ A.T + t, atol=1e-9)  # trilinear is exact
+    np.testing.assert_allclose(m.apply(g.X), pts, atol=1e-9)
+    f = rng.normal(size=pts.shape)
+    x = rng.normal(size=g.X.shape)
+    assert np.sum(f * m.apply(x)) == pytest.approx(np.sum(m.apply_transpose(f) * x), rel=1e-12)  # work
+    np.testing.assert_allclose(m.J3 @ x.ravel(), m.apply(x).ravel(), atol=1e-12)
+    assert np.all((m.natural >= -1 - 1e-9) & (m.natural <= 1 + 1e-9))
+
+
+def test_tetrahedralize_a_sphere():
+    s = trimesh.creation.icosphere(4, 60.0)
+    X, T = tetrahedralize(s, 20.0)
+    p = X[T]
+    vol = np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) / 6
+    assert np.all(vol > 0)
+    assert vol.sum() == pytest.approx(s.volume, rel=0.12)
+    assert np.all(SurfaceQuery.of(s).signed_distance(p.mean(axis=1)) < 0)
+    assert len(np.unique(T)) == len(X)
+
+
+def test_phantom_bones_reach_the_papers_element_count(volunteer):
+    from models.phantom import build_phantom
+
+    ph = build_phantom(volunteer.params)
+    for bone in (ph.femur, ph.tibia):
+        X, T, edge = tetrahedralize_to_count(bone, (400, 700))
+        assert 400 <= len(T) <= 900, (len(T), edge)
