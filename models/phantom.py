@@ -39,16 +39,20 @@ class Phantom:
     patella: trimesh.Trimesh | None
     params: MechanismParams
     skin_radius: float
+    shaft_length: float = 160.0
 
-    def skin(self, tf_pose: np.ndarray, pf_pose: np.ndarray | None = None) -> trimesh.Trimesh:
+    def skin(self, tf_pose: np.ndarray, pf_pose: np.ndarray | None = None,
+             length: float | None = None) -> trimesh.Trimesh:
         """The soft-tissue envelope, in the femur frame, with the tibia at ``tf_pose`` (4, 4).
 
         A thigh capsule along the femoral shaft, a shank capsule along the tibial shaft (posed) and a
-        sphere at the knee, joined; the radius clears every bone by at least 8 mm at extension.
+        sphere at the knee, joined; the radius clears every bone by at least 8 mm at extension. The
+        capsules run ``length`` mm from the knee (default: 10 mm beyond the bone shafts).
         """
         r = self.skin_radius
-        thigh = _capsule(np.array([0.0, 10.0, 0.0]), np.array([0.0, 170.0, 0.0]), r)
-        shank = _capsule(np.array([0.0, -10.0, 0.0]), np.array([0.0, -170.0, 0.0]), r * 0.92)
+        L = self.shaft_length + 10.0 if length is None else float(length)
+        thigh = _capsule(np.array([0.0, 10.0, 0.0]), np.array([0.0, L, 0.0]), r)
+        shank = _capsule(np.array([0.0, -10.0, 0.0]), np.array([0.0, -L, 0.0]), r * 0.92)
         shank.apply_transform(tf_pose)
         knee_c = 0.5 * (np.zeros(3) + tf_pose[:3, 3])
         parts = [thigh, shank, trimesh.creation.icosphere(3, r * 1.02).apply_translation(knee_c)]
@@ -81,8 +85,16 @@ def _sphere(c, r, subdivisions=4) -> trimesh.Trimesh:
     return trimesh.creation.icosphere(subdivisions, r).apply_translation(np.asarray(c, float))
 
 
-def build_phantom(params: MechanismParams) -> Phantom:
-    """Build the phantom of a parameter set (about 0.2 s)."""
+def build_phantom(params: MechanismParams, shaft_length: float = 160.0, cartilage: float = 0.0) -> Phantom:
+    """Build the phantom of a parameter set (about 0.2 s); bone shafts reach ``shaft_length`` mm from
+    the knee (a knee CT covers about 100-150 mm each way).
+
+    With ``cartilage`` > 0 the bones are the subchondral bone: both articular surfaces are set back by
+    that thickness (mm), so the posed bones leave a soft joint space of twice that width where the
+    mechanism's contacts touch (the spheres of the contact links describe the cartilage surfaces)."""
+    c = float(cartilage)
+    if not 0.0 <= c < 10.0:
+        raise ValueError(f"cartilage thickness must be in [0, 10) mm, got {cartilage}")
     contacts = [lk for lk in params.links if lk.role == "contact"]
     if len(contacts) < 2:
         raise ValueError("a phantom needs the two condylar contact links")
@@ -92,13 +104,13 @@ def build_phantom(params: MechanismParams) -> Phantom:
     fparts = []
     centres = []
     for lk in contacts:
-        rf = lk.femur_radius or DEFAULT_CONDYLE_RADIUS
+        rf = (lk.femur_radius or DEFAULT_CONDYLE_RADIUS) - c
         fparts.append(_sphere(lk.femur, rf))
         centres.append((lk.femur, rf))
     (c1, r1), (c2, r2) = centres
     fparts.append(_cylinder(c1, c2, 0.8 * min(r1, r2)))
     mid = 0.5 * (c1 + c2)
-    shaft_top = mid + np.array([0.0, 160.0, 0.0])
+    shaft_top = mid + np.array([0.0, shaft_length, 0.0])
     fparts.append(_cylinder(mid + np.array([0, 0.3 * r1, 0]), shaft_top, 14.0))
     fparts.append(_cylinder(mid + np.array([-4.0, 0.0, 0.0]), mid + np.array([-4.0, 45.0, 0.0]), 0.9 * min(r1, r2)))
     patella = None
@@ -124,13 +136,13 @@ def build_phantom(params: MechanismParams) -> Phantom:
         rf = lk.femur_radius or DEFAULT_CONDYLE_RADIUS
         if lk.kind == "distance":
             if lk.tibia_surface == "convex":
-                rt = lk.length - rf
+                rt = lk.length - rf - c
                 top = lk.tibia + rt * up
                 block = _cylinder(top - 14 * up, top + 2 * up, FACET_RADIUS)
                 facet = trimesh.boolean.intersection([block, _sphere(lk.tibia, rt, 5)], engine="manifold")
                 base_y = top[1] - 14
             else:
-                rt = lk.length + rf
+                rt = lk.length + rf + c
                 bottom = lk.tibia - rt * up
                 block = _cylinder(bottom - 12 * up, bottom + 6 * up, FACET_RADIUS)
                 facet = trimesh.boolean.difference([block, _sphere(lk.tibia, rt, 5)], engine="manifold")
@@ -139,7 +151,7 @@ def build_phantom(params: MechanismParams) -> Phantom:
             tparts.append(facet)
         else:  # sphere-plane: the facet's top face is the tibial plane
             nrm = lk.normal / np.linalg.norm(lk.normal)
-            top = lk.tibia
+            top = lk.tibia - c * nrm
             tparts.append(_cylinder(top - 14 * nrm, top, FACET_RADIUS))
             base_y = top[1] - 14
         tops.append((top, base_y))
@@ -151,7 +163,7 @@ def build_phantom(params: MechanismParams) -> Phantom:
     slab.apply_translation([cx, slab_top - 8.0, cz])
     tparts.append(slab)
     shaft_top = np.array([cx, slab_top - 10, cz])
-    tparts.append(_cylinder(shaft_top, shaft_top - np.array([0, 170.0, 0]), 15.0))
+    tparts.append(_cylinder(shaft_top, np.array([cx, -shaft_length, cz]), 15.0))
     if pf is not None:
         tparts.append(_sphere(pf.tendon_tibia - np.array([6.0, 0, 0]), 9.0, 3))
         tparts.append(_cylinder(pf.tendon_tibia - np.array([6.0, 0, 0]), shaft_top - np.array([0, 30, 0]), 9.0))
@@ -160,7 +172,8 @@ def build_phantom(params: MechanismParams) -> Phantom:
     # ---- skin radius: clear every bone by 8 mm at extension (lateral and AP extent near the knee)
     ext = np.vstack([femur.vertices[femur.vertices[:, 1] < 60], tibia.vertices[tibia.vertices[:, 1] > -60]])
     rad = np.sqrt(ext[:, 0] ** 2 + ext[:, 2] ** 2).max()
-    return Phantom(femur=femur, tibia=tibia, patella=patella, params=params, skin_radius=float(rad + 8.0))
+    return Phantom(femur=femur, tibia=tibia, patella=patella, params=params, skin_radius=float(rad + 8.0),
+                   shaft_length=float(shaft_length))
 
 
 def posed_bones(phantom: Phantom, tf: np.ndarray, pf: np.ndarray | None = None) -> dict[str, trimesh.Trimesh]:

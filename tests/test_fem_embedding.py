@@ -20,11 +20,12 @@ def capsule_grid():
 def test_grid_encloses_the_skin(capsule_grid):
     skin, g = capsule_grid
     assert g.shape[0] == g.shape[2] == 7 and g.shape[1] == int(np.ceil((300 + 2) / 15.0))
+    assert np.allclose(np.diff(g.axes[1]), 302 / g.shape[1])
     assert set(np.unique(g.status)) <= {INSIDE, BOUNDARY}
     assert np.all((g.weights > 0) & (g.weights <= 1))
     assert np.all(g.weights[g.status == INSIDE] == 1)
     # the kept volume (weighted) approximates the skin's volume
-    vol = np.prod(g.spacing) * g.weights.sum()
+    vol = (g.cell_volumes * g.weights).sum()
     assert vol == pytest.approx(skin.volume, rel=0.05)
     m = TrilinearMapping(g, skin.vertices)
     assert m.outside == 0
@@ -45,6 +46,24 @@ def test_mapping_reproduces_affine_fields_and_is_consistent(capsule_grid):
     assert np.sum(f * m.apply(x)) == pytest.approx(np.sum(m.apply_transpose(f) * x), rel=1e-12)  # work
     np.testing.assert_allclose(m.J3 @ x.ravel(), m.apply(x).ravel(), atol=1e-12)
     assert np.all((m.natural >= -1 - 1e-9) & (m.natural <= 1 + 1e-9))
+
+
+def test_graded_grid_along_the_limb():
+    from models.fem.grid import graded_axis
+
+    a = graded_axis(-150.0, 120.0, 3.0, 18.0, 0.0, 15.0)
+    h = np.diff(a)
+    assert a[0] == -150.0 and a[-1] == 120.0 and np.all(h > 0)
+    near = np.abs(0.5 * (a[:-1] + a[1:])) < 14.0
+    assert np.allclose(h[near], 3.0) and h.max() <= 1.5 * 18.0  # the last cell absorbs a remainder
+    skin = trimesh.creation.capsule(height=200.0, radius=50.0, count=[32, 32])
+    skin.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+    g = build_grid(skin, 7, 18.0, joint_y=0.0, joint_size=3.0)
+    assert (g.cell_volumes * g.weights).sum() == pytest.approx(skin.volume, rel=0.05)
+    pts = skin.sample(300, seed=2) * 0.9
+    m = TrilinearMapping(g, pts)
+    A = np.random.default_rng(4).normal(size=(3, 3))
+    np.testing.assert_allclose(m.apply(g.X @ A.T), pts @ A.T, atol=1e-9)
 
 
 def test_tetrahedralize_a_sphere():

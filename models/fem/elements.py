@@ -188,11 +188,11 @@ class CorotationalElements:
         E, n = self.cells.shape
         if corotational:
             R = self.update_rotations(x)
-            u = np.einsum("eji,eaj->eai", R, xe) - Xe  # R^T x - X
-            f = np.einsum("eij,ej->ei", self.K, u.reshape(E, 3 * n)).reshape(E, n, 3)
-            return -np.einsum("eij,eaj->eai", R, f)
-        u = (xe - Xe).reshape(E, 3 * n)
-        return -np.einsum("eij,ej->ei", self.K, u).reshape(E, n, 3)
+            u = xe @ R - Xe  # rows: (R^T x_a)^T - X_a
+            f = (self.K @ u.reshape(E, 3 * n, 1)).reshape(E, n, 3)
+            return -(f @ np.swapaxes(R, 1, 2))
+        u = (xe - Xe).reshape(E, 3 * n, 1)
+        return -(self.K @ u).reshape(E, n, 3)
 
     def forces(self, x: np.ndarray, corotational: bool = True) -> np.ndarray:
         """Internal forces gathered on the nodes, (N, 3)."""
@@ -204,9 +204,12 @@ class CorotationalElements:
     def rotated_stiffness(self) -> np.ndarray:
         """Element tangents ``R K R^T`` for the current rotations, (E, 3n, 3n)."""
         E, n = self.cells.shape
-        K = self.K.reshape(E, n, 3, n, 3)
-        Kr = np.einsum("eij,eajbk,elk->eaibl", self.R, K, self.R)
-        return Kr.reshape(E, 3 * n, 3 * n)
+        R = self.R
+        # left: (R K)[a i, :] = sum_j R[i, j] K[a j, :]
+        left = (R[:, None, :, :] @ self.K.reshape(E, n, 3, 3 * n)).reshape(E, 3 * n, 3 * n)
+        # right: (.. R^T)[:, b l] = sum_k (..)[:, b k] R[l, k]
+        right = left.reshape(E, 3 * n, n, 3) @ np.swapaxes(R, 1, 2)[:, None, :, :]
+        return right.reshape(E, 3 * n, 3 * n)
 
 
 def element_strains(X: np.ndarray, cells: np.ndarray, u: np.ndarray) -> np.ndarray:

@@ -35,9 +35,9 @@ class _Scatter:
 def _apply_corot(el: CorotationalElements, pe: np.ndarray) -> np.ndarray:
     """R K R^T applied to element vectors pe (E, n, 3)."""
     E, n = el.cells.shape
-    loc = np.einsum("eji,eaj->eai", el.R, pe).reshape(E, 3 * n)
-    kl = np.einsum("eij,ej->ei", el.K, loc).reshape(E, n, 3)
-    return np.einsum("eij,eaj->eai", el.R, kl)
+    loc = (pe @ el.R).reshape(E, 3 * n, 1)
+    kl = (el.K @ loc).reshape(E, n, 3)
+    return kl @ np.swapaxes(el.R, 1, 2)
 
 
 class GridElasticity:

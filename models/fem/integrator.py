@@ -43,7 +43,7 @@ class ImplicitEuler:
     """
 
     def __init__(self, x0, mass, fields, dt=0.05, rayleigh_mass=0.1, rayleigh_stiffness=0.1,
-                 tol=1e-8, max_iterations=200, refresh_iterations=25, fixed=None):
+                 tol=1e-5, max_iterations=200, refresh_iterations=25, fixed=None, node_rotations=None):
         self.x = np.array(x0, dtype=float)
         self.fixed = np.zeros(len(self.x), bool) if fixed is None else np.asarray(fixed, bool)
         self._free = np.repeat(~self.fixed, 3).astype(float)
@@ -54,6 +54,10 @@ class ImplicitEuler:
         self.a, self.b = float(rayleigh_mass), float(rayleigh_stiffness)
         self.tol, self.max_iterations, self.refresh_iterations = tol, max_iterations, refresh_iterations
         self._lu = None
+        # node_rotations() -> (N, 3, 3) rotations of the material around each node (for the warped
+        # preconditioner W LU^-1 W^T, W = rotations since the last factorisation); None: no warping
+        self.node_rotations = node_rotations
+        self._R_ref = None
         self.time = 0.0
         self.steps = 0
         self.refreshes = 0
@@ -81,7 +85,21 @@ class ImplicitEuler:
         P = sp.diags(self._free)
         A = (P @ A @ P + sp.diags(1 - self._free)).tocsc()
         self._lu = spla.splu(A)
+        self._R_ref = None if self.node_rotations is None else self.node_rotations()
         self.refreshes += 1
+
+    def _preconditioner(self, n):
+        if self.node_rotations is None:
+            return spla.LinearOperator((n, n), matvec=self._lu.solve)
+        W = self.node_rotations() @ np.swapaxes(self._R_ref, 1, 2)  # (N, 3, 3)
+        Wt = np.swapaxes(W, 1, 2)
+        lu = self._lu
+
+        def apply(r):
+            z = lu.solve((Wt @ r.reshape(-1, 3, 1)).ravel())
+            return (W @ z.reshape(-1, 3, 1)).ravel()
+
+        return spla.LinearOperator((n, n), matvec=apply)
 
     def step(self, external=None) -> StepInfo:
         """One step; ``external(x)`` returns external forces (N, 3) or None."""
@@ -103,7 +121,7 @@ class ImplicitEuler:
         def count(_):
             its[0] += 1
 
-        M = spla.LinearOperator((n, n), matvec=self._lu.solve)
+        M = self._preconditioner(n)
         v, _ = spla.cg(A, rhs, x0=self.v.ravel(), M=M, rtol=self.tol, maxiter=self.max_iterations,
                        callback=count)
         if its[0] > self.refresh_iterations and not refreshed:

@@ -24,18 +24,19 @@ class TrilinearMapping:
 
     def __init__(self, grid: SparseGrid, points):
         P = np.asarray(points, dtype=float)
-        rel = (P - grid.origin) / grid.spacing
-        ijk = np.clip(np.floor(rel).astype(np.int64), 0, grid.shape - 1)
+        ijk, xi = grid.locate(P)
         lookup = grid.cell_lookup()
         cell = lookup[tuple(ijk.T)]
         missing = cell < 0
         self.outside = int(missing.sum())
-        if missing.any():  # nearest kept cell by cell-centre distance
-            centres = grid.cell_ijk + 0.5
-            d = ((rel[missing, None, :] - centres[None, :, :]) ** 2).sum(-1)
-            cell[missing] = d.argmin(axis=1)
+        if missing.any():  # nearest kept cell by cell-centre distance, extrapolating from it
+            centres = np.column_stack([0.5 * (a[:-1] + a[1:])[grid.cell_ijk[:, d]] for d, a in enumerate(grid.axes)])
+            d2 = ((P[missing, None, :] - centres[None, :, :]) ** 2).sum(-1)
+            cell[missing] = d2.argmin(axis=1)
             ijk[missing] = grid.cell_ijk[cell[missing]]
-        xi = 2.0 * (rel - ijk) - 1.0  # natural coordinates in [-1, 1]^3 (beyond when extrapolated)
+            for d, a in enumerate(grid.axes):
+                i = ijk[missing, d]
+                xi[missing, d] = 2.0 * (P[missing, d] - a[i]) / (a[i + 1] - a[i]) - 1.0
         w = np.prod(1.0 + xi[:, None, :] * HEX_CORNERS[None, :, :], axis=2) / 8.0  # (P, 8)
         nodes = grid.cells[cell]  # (P, 8)
         self.cell = cell

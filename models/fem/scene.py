@@ -26,7 +26,11 @@ BONE_DENSITY = 1.9e-9   # tonne/mm^3
 @dataclass
 class FemSettings:
     n_across: int = 7
-    element_size: float = 12.0
+    element_size: float = 18.0
+    joint_size: float = 3.0
+    joint_half_width: float = 15.0
+    shaft_length: float = 100.0
+    cartilage: float = 2.5
     n_along: int | None = None
     soft_E: float = 1.0
     soft_nu: float = 0.3
@@ -64,7 +68,7 @@ class AssociationModel:
 def lumped_mass(grid, bones, soft_density=SOFT_DENSITY, bone_density=BONE_DENSITY) -> np.ndarray:
     """Nodal masses (N,): each grid cell's mass (volume x inside fraction) split over its 8 nodes, plus
     each bone tetrahedron's mass split over its 4 nodes and carried to the grid by J^T (row lumping)."""
-    vol = np.prod(grid.spacing) * grid.weights
+    vol = grid.cell_volumes * grid.weights
     m = np.bincount(grid.cells.ravel(), weights=np.repeat(soft_density * vol / 8, 8), minlength=grid.n_nodes)
     for b in bones:
         p = b.el.X[b.el.cells]
@@ -77,11 +81,14 @@ def lumped_mass(grid, bones, soft_density=SOFT_DENSITY, bone_density=BONE_DENSIT
 def build_association_model(mech: Mechanism, settings: FemSettings | None = None) -> AssociationModel:
     """The model of ``mech``'s phantom at full extension (0 deg flexion), in the femur frame."""
     s = settings or FemSettings()
-    ph = build_phantom(mech.params)
+    ph = build_phantom(mech.params, shaft_length=s.shaft_length, cartilage=s.cartilage)
     tf, _, _ = mech.solve(0.0)
     T = joint_to_pose(tf)
     skin = ph.skin(T)
-    grid = build_grid(skin, s.n_across, s.element_size, s.n_along)
+    contacts = [lk for lk in mech.params.links if lk.role == "contact"]
+    joint_y = float(np.mean([lk.femur[1] - (lk.femur_radius or 22.0) for lk in contacts]))
+    grid = build_grid(skin, s.n_across, s.element_size, s.n_along, joint_y=joint_y,
+                      joint_size=s.joint_size, joint_half_width=s.joint_half_width)
     tibia_surface = ph.tibia.copy().apply_transform(T)
     Xf, Tf, _ = tetrahedralize_to_count(ph.femur, s.bone_tets)
     Xt, Tt, _ = tetrahedralize_to_count(tibia_surface, s.bone_tets)
@@ -103,10 +110,38 @@ def build_association_model(mech: Mechanism, settings: FemSettings | None = None
     tpts = tv[tv[:, 1] > T[1, 3] - 30.0]
     contact = MappedPenaltyContact(grid, fpts, tpts, s.contact_k, s.contact_distance)
     mass = lumped_mass(grid, [femur, tibia])
-    # the thigh is held (as in a leg holder): the grid's most proximal layer of nodes is fixed
-    fixed = grid.X[:, 1] > grid.X[:, 1].max() - 1e-6
+    # the thigh is held (as in a leg holder) around the proximal femoral shaft: grid nodes from one
+    # cell below the top of the femur mesh upwards are fixed
+    fixed = grid.X[:, 1] >= grid.axes[1][np.searchsorted(grid.axes[1], Xf[:, 1].max()) - 1]
+    # each node's rotation: that of one grid cell around it (for the warped preconditioner)
+    rep = np.zeros(grid.n_nodes, dtype=np.int64)
+    rep[grid.cells.ravel()] = np.repeat(np.arange(len(grid.cells)), 8)
     solver = ImplicitEuler(grid.X, mass, [soft, femur, tibia, springs, contact], s.dt, s.rayleigh_mass,
-                           s.rayleigh_stiffness, fixed=fixed)
+                           s.rayleigh_stiffness, fixed=fixed, node_rotations=lambda: soft.el.R[rep])
     return AssociationModel(grid=grid, femur=femur, tibia=tibia, springs=springs, contact=contact, soft=soft,
                             solver=solver, skin_vertices=np.asarray(skin.vertices), skin_faces=np.asarray(skin.faces),
                             femur_surface=ph.femur, tibia_surface=tibia_surface, settings=s)
+
+
+def best_fit_rotation(rest: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """Rotation R (3, 3) minimising |R (rest - mean) - (current - mean)| (Kabsch)."""
+    a = rest - rest.mean(axis=0)
+    b = current - current.mean(axis=0)
+    U, _, Vt = np.linalg.svd(a.T @ b)
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    return Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+
+
+def knee_angles(model: "AssociationModel", x=None):
+    """(flexion_deg, femur_tibia_angle_deg) of the FEM bones at grid positions ``x``: the flexion is the
+    Cardan flexion of the tibia's best-fit rotation relative to the femur's; the femur-tibia angle is
+    the angle between the femur's proximal axis and the tibia's distal axis (180 at extension), the
+    quantity the paper's bone-force phase drives below 100 degrees."""
+    from toolkit.conventions import matrix_to_cardan
+
+    x = model.x if x is None else x
+    Rf = best_fit_rotation(model.femur.el.X, model.femur.bone_positions(x))
+    Rt = best_fit_rotation(model.tibia.el.X, model.tibia.bone_positions(x))
+    flex = np.degrees(matrix_to_cardan(Rf.T @ Rt)[0])
+    between = np.degrees(np.arccos(np.clip((Rf @ [0, 1, 0]) @ (Rt @ [0, -1, 0]), -1, 1)))
+    return float(flex), float(between)

@@ -1,0 +1,111 @@
+"""Implicit Euler and the assembled association model."""
+
+import numpy as np
+import pytest
+import scipy.sparse.linalg as spla
+
+from models.fem.assembly import PatternAssembler
+from models.fem.fields import GridElasticity, MappedSprings
+from models.fem.grid import SparseGrid
+from models.fem.integrator import ImplicitEuler
+from models.fem.meshing import box_hexahedra
+from toolkit.conventions import cardan_to_matrix
+
+
+def _box_grid(n=(10, 2, 2), size=(100.0, 10.0, 10.0)):
+    X, cells = box_hexahedra(n, size)
+    axes = tuple(np.linspace(0, s, k + 1) for s, k in zip(size, n))
+    ijk = np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1).reshape(-1, 3)
+    return SparseGrid(X, cells, np.ones(len(cells)), np.zeros(len(cells), int), axes, ijk)
+
+
+def test_damped_implicit_euler_reaches_the_static_solution():
+    """With damping the dynamics settle on the static solution; for a vanishing load the co-rotational
+    solution tends to the linear one (the difference shrinks in proportion to the load)."""
+    g = _box_grid()
+    field = GridElasticity(g, E=1000.0, nu=0.3)
+    clamped = g.X[:, 0] < 1e-9
+    tip = g.X[:, 0] > 100 - 1e-9
+    K = PatternAssembler(g.cells, len(g.X)).assemble(field.el.K)
+    free = ~np.repeat(clamped, 3)
+    errors = []
+    for P in (0.01, 0.001):
+        load = np.zeros(g.X.shape)
+        load[tip, 1] = -P / tip.sum()
+        s = ImplicitEuler(g.X, np.full(len(g.X), 1e-6), [field], dt=0.05, rayleigh_mass=1.0,
+                          rayleigh_stiffness=0.01, tol=1e-12, fixed=clamped)
+        for _ in range(60):
+            s.step(lambda x: load)
+        assert np.abs(s.v).max() < 1e-9
+        u = np.zeros(3 * len(g.X))
+        u[free] = spla.spsolve(K[free][:, free].tocsc(), load.ravel()[free])
+        errors.append(np.abs((s.x - g.X).ravel() - u).max() / np.abs(u).max())
+    assert errors[0] < 1e-4
+    assert 5.0 < errors[0] / errors[1] < 20.0, errors
+
+
+def test_rigidly_rotated_body_stays_at_rest():
+    g = _box_grid((4, 2, 2), (40.0, 10.0, 10.0))
+    field = GridElasticity(g, E=10.0, nu=0.3)
+    Q = cardan_to_matrix(1.0, 0.3, -0.5)
+    x0 = g.X @ Q.T + 5.0
+    s = ImplicitEuler(x0, np.full(len(g.X), 1e-6), [field], dt=0.05)
+    for _ in range(10):
+        s.step()
+    np.testing.assert_allclose(s.x, x0, atol=1e-9)
+
+
+def test_spring_force_and_tangent_agree():
+    g = _box_grid((2, 2, 2), (20.0, 20.0, 20.0))
+    sp_ = MappedSprings(g, [[2.0, 3.0, 4.0]], [[15.0, 12.0, 9.0]], k=1000.0)
+    rng = np.random.default_rng(0)
+    x = g.X + rng.normal(0, 0.5, g.X.shape)
+    f0 = sp_.forces(x)
+    dx = rng.normal(0, 1e-6, g.X.shape)
+    df = sp_.forces(x + dx) - f0
+    sp_.forces(x)
+    np.testing.assert_allclose(-sp_.apply(dx), df, atol=1e-6 * np.abs(df).max() + 1e-12)
+    np.testing.assert_allclose(sp_.matrix() @ dx.ravel(), sp_.apply(dx).ravel(), atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def knee_model(volunteer):
+    from models.fem.scene import build_association_model
+
+    return build_association_model(volunteer)
+
+
+def test_association_model_is_built_as_specified(knee_model):
+    m = knee_model
+    assert m.grid.shape[0] == m.grid.shape[2] == 7
+    for bone in (m.femur, m.tibia):
+        assert 400 <= len(bone.el.cells) <= 900
+        assert bone.map.outside == 0  # every bone node inside a grid cell
+        assert bone.el.K.shape[1:] == (12, 12)
+    assert np.allclose(m.springs.k, 1000.0)
+    assert m.contact.distance == 10.0
+    assert m.solver.dt == 0.05
+    # the rest state is in equilibrium: no force anywhere
+    f = sum(fl.forces(m.grid.X) for fl in m.solver.fields)
+    assert np.abs(f).max() < 1e-6
+
+
+def test_knee_flexes_towards_the_load(knee_model):
+    from models.fem.scene import knee_angles
+
+    m = knee_model
+    s = m.solver
+    end = np.argsort(m.tibia.el.X[:, 1])[:5]
+
+    def load(x):
+        f = np.zeros((len(m.tibia.el.X), 3))
+        f[end, 0] = -200.0  # posterior push on the distal tibia: flexion
+        return m.tibia.map.apply_transpose(f)
+
+    for _ in range(15):
+        info = s.step(load)
+    flex, between = knee_angles(m)
+    assert np.all(np.isfinite(s.x))
+    assert flex > 3.0 and between < 177.0
+    assert np.abs(s.x[s.fixed] - m.grid.X[s.fixed]).max() == 0.0
+    assert info.residual < 1e-4
