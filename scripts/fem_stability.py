@@ -1,6 +1,6 @@
 """Stability check of the association model (issue: association FEM, section 4): the default model at
 dt = 0.05 s with the stiff bones, 2000 implicit steps. A posterior force on the distal tibia (1000 N)
-flexes the knee for the first 200 steps and is then released. Prints progress and, at the end, the
+flexes the knee for the first 200 steps and is then released (``--release -1``: kept on throughout). Prints progress and, at the end, the
 largest displacement, the final flexion and whether every step stayed finite.
 
     .venv/bin/python scripts/fem_stability.py [--steps 2000]
@@ -19,6 +19,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=int, default=2000)
     ap.add_argument("--force", type=float, default=1000.0)
+    ap.add_argument("--release", type=int, default=200, help="step at which the load is removed (-1: never)")
     args = ap.parse_args()
     from models.fem.scene import build_association_model, knee_angles
     from models.mechanism import Mechanism
@@ -29,7 +30,7 @@ def main():
     end = np.argsort(tib.el.X[:, 1])[:5]
 
     def load(x):
-        if s.steps >= 200:
+        if 0 <= args.release <= s.steps:
             return None
         f = np.zeros((len(tib.el.X), 3))
         f[end, 0] = -args.force / len(end)
