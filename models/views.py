@@ -70,8 +70,6 @@ def log_sweep(rec: rr.RecordingStream, mech: Mechanism, res: SweepResult, phanto
         if group == "pf" and not mech.has_pf:
             continue
         for j, (name, unit) in enumerate(zip(JOINT_COORDINATES, UNITS)):
-            if group == "tf" and j == 0:
-                continue  # TF flexion is the timeline itself
             v = np.degrees(q[:, j]) if unit == "deg" else q[:, j]
             rec_.send_scalars(rec, f"metrics/{group}/{name}_{unit}", tl, t, v)
     rec_.send_scalars(rec, "metrics/solver/log10_max_residual_mm", tl, t, np.log10(np.maximum(res.residual, 1e-17)))

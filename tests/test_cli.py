@@ -61,7 +61,8 @@ def test_sweep_csv_and_recording(tmp_path, volunteer):
     pr = subprocess.run([rerun_bin, "rrd", "print", str(rrd)], capture_output=True, text=True,
                         env=dict(os.environ, CI="1"), timeout=120)
     for entity in ("/knee/femur", "/knee/tibia", "/knee/patella", "/knee/links/acl", "/knee/links/mc",
-                   "/knee/links/patellar_tendon", "/metrics/tf/adduction_deg", "/metrics/pf/flexion_deg"):
+                   "/knee/links/patellar_tendon", "/metrics/tf/adduction_deg", "/metrics/pf/flexion_deg",
+                   "/metrics/tf/flexion_deg", "/metrics/solver/log10_jacobian_condition"):
         assert entity in pr.stdout, entity
 
 
