@@ -59,10 +59,30 @@ class AssociationModel:
     femur_surface: object
     tibia_surface: object
     settings: FemSettings = field(default_factory=FemSettings)
+    phantom: object = None
+    joint_y: float = 0.0
 
     @property
     def x(self):
         return self.solver.x
+
+
+def isometric_lateral_pair(mech: Mechanism, femur_vertices, tibia_vertices, T0, angles_deg=range(0, 121, 10)):
+    """Femur and tibia surface points (lateral epicondyle region; lateral tibia 25-60 mm below the
+    joint) whose distance varies least when the tibia follows the mechanism from extension; tibia
+    points given at the extension pose ``T0``. Vectorised over all pairs and angles."""
+    fv, tv = np.asarray(femur_vertices), np.asarray(tibia_vertices)
+    yj = float(np.max(tv[:, 1]))
+    cf = fv[(fv[:, 2] > fv[:, 2].max() - 12.0) & (np.abs(fv[:, 1] - 5.0) < 25.0)]
+    ct = tv[(tv[:, 2] > tv[:, 2].max() - 12.0) & (tv[:, 1] < yj - 25.0) & (tv[:, 1] > yj - 60.0)]
+    cf = cf[:: max(1, len(cf) // 150)]
+    ct = ct[:: max(1, len(ct) // 150)]
+    al = [a for a in angles_deg if mech.in_range(np.radians(a))]
+    poses = joint_to_pose(mech.sweep(np.radians(np.asarray(al, float))).tf) @ np.linalg.inv(T0)
+    tp = np.einsum("kij,tj->kti", poses[:, :3, :3], ct) + poses[:, None, :3, 3]  # (angles, Nt, 3)
+    L = np.linalg.norm(cf[None, :, None, :] - tp[:, None, :, :], axis=3)        # (angles, Nf, Nt)
+    i, j = np.unravel_index(np.argmin(L.std(axis=0)), L.shape[1:])
+    return cf[i], ct[j]
 
 
 def lumped_mass(grid, bones, soft_density=SOFT_DENSITY, bone_density=BONE_DENSITY) -> np.ndarray:
@@ -95,13 +115,12 @@ def build_association_model(mech: Mechanism, settings: FemSettings | None = None
     femur = MappedBoneElasticity(grid, Xf, Tf, s.bone_E, s.bone_nu)
     tibia = MappedBoneElasticity(grid, Xt, Tt, s.bone_E, s.bone_nu)
     soft = GridElasticity(grid, s.soft_E, s.soft_nu)
-    # collateral springs: MCL from the mechanism's MCL link; LCL from the lateral femoral epicondyle
-    # region to the lateral tibia 45 mm below the femur origin (phantom attachments)
+    # collateral springs: MCL along the mechanism's (isometric) MCL fibre; LCL between the lateral
+    # femoral epicondyle region and the lateral proximal tibia, at the pair of surface points whose
+    # distance varies least over the mechanism's motion (so the springs do not resist flexion)
     mcl = mech.params.link("mcl")
-    fv, tv = ph.femur.vertices, tibia_surface.vertices
-    lat_f = fv[np.argmax(fv[:, 2] - 0.5 * np.abs(fv[:, 1]))]
-    band = np.abs(tv[:, 1] - (T[1, 3] - 45.0)) < 8.0
-    lat_t = tv[band][np.argmax(tv[band][:, 2])]
+    fv, tv = np.asarray(ph.femur.vertices), np.asarray(tibia_surface.vertices)
+    lat_f, lat_t = isometric_lateral_pair(mech, fv, tv, T)
     a = np.vstack([mcl.femur, lat_f])
     b = np.vstack([transform_points(T, mcl.tibia[None, :])[0], lat_t])
     springs = MappedSprings(grid, a, b, s.spring_k)
@@ -120,7 +139,8 @@ def build_association_model(mech: Mechanism, settings: FemSettings | None = None
                            s.rayleigh_stiffness, fixed=fixed, node_rotations=lambda: soft.el.R[rep])
     return AssociationModel(grid=grid, femur=femur, tibia=tibia, springs=springs, contact=contact, soft=soft,
                             solver=solver, skin_vertices=np.asarray(skin.vertices), skin_faces=np.asarray(skin.faces),
-                            femur_surface=ph.femur, tibia_surface=tibia_surface, settings=s)
+                            femur_surface=ph.femur, tibia_surface=tibia_surface, settings=s, phantom=ph,
+                            joint_y=joint_y)
 
 
 def best_fit_rotation(rest: np.ndarray, current: np.ndarray) -> np.ndarray:

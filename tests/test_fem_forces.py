@@ -1,0 +1,70 @@
+"""External forces and the standard case's target points."""
+
+import numpy as np
+import pytest
+
+from models.fem.forces import BoneForces, SurfaceForces
+
+
+@pytest.fixture(scope="module")
+def knee_model(volunteer):
+    from models.fem.scene import build_association_model
+
+    return build_association_model(volunteer)
+
+
+def test_bone_forces_directions_and_magnitudes(knee_model):
+    m = knee_model
+    bf = BoneForces(m.femur, m.tibia)
+    f = bf.forces(m.grid.X)
+    # the grid forces carry the applied totals (J^T preserves the resultant: weights sum to 1)
+    assert np.linalg.norm(f.sum(axis=0)) == pytest.approx(
+        np.linalg.norm(9000 * bf.directions["F1"] + 23000 * bf.directions["F2"] + 3000 * bf.directions["F3"]
+                       + 6000 * bf.directions["F4"]), rel=1e-9)
+    assert bf.directions["F4"][0] < -0.9      # posterior push on the tibial shaft: flexion
+    assert bf.directions["F3"][1] < -0.9      # distal along the femur
+    np.testing.assert_allclose(bf.directions["F1"], -bf.directions["F2"])
+    held = BoneForces(m.femur, m.tibia, use_femur=False)
+    assert np.linalg.norm(held.forces(m.grid.X).sum(axis=0)) == pytest.approx(6000.0, rel=1e-9)
+
+
+def test_surface_forces_and_the_adaptive_reference_distance(knee_model):
+    m = knee_model
+    skin = m.skin_vertices
+    # depth points: the front half of the skin moved 3 mm anteriorly
+    front = skin[skin[:, 0] > 0]
+    sf = SurfaceForces(m.grid, skin, front + [3.0, 0, 0], k=2.0)
+    f = sf.forces(m.grid.X)
+    assert 0.2 < sf.within_fraction < 0.5                 # one-sided: less than half are within
+    assert sf.reference == pytest.approx(10.0)            # so it grows, capped at 10 mm
+    assert f.sum(axis=0)[0] > 0                           # pulled towards the points
+    assert np.abs(f.sum(axis=0)[0] - 2.0 * 3.0 * sf.active.sum()) < 0.5 * 6.0 * sf.active.sum()
+    all_pts = SurfaceForces(m.grid, skin, skin + [0.5, 0, 0], k=2.0)
+    for _ in range(5):
+        all_pts.forces(m.grid.X)
+    assert all_pts.reference == pytest.approx(9.5)        # more than half within: shrinks 0.1 per step
+    for _ in range(200):
+        all_pts.forces(m.grid.X)
+    assert all_pts.reference == pytest.approx(1.0)        # lower limit
+    p = np.random.default_rng(0).normal(size=m.grid.X.shape)
+    np.testing.assert_allclose(all_pts.matrix() @ p.ravel(), all_pts.apply(p).ravel(), atol=1e-9)
+
+
+def test_target_points_have_footprints(knee_model, volunteer):
+    from models.fem.case import target_points
+
+    t = target_points(knee_model, volunteer)
+    assert t.femur_footprints.sum() > 10 and t.tibia_footprints.sum() > 10
+    assert len(t.femur) > t.femur_footprints.sum() and len(t.tibia) > t.tibia_footprints.sum()
+
+
+def test_isometric_lateral_spring(knee_model, volunteer):
+    """The LCL spring's attachments keep their distance over the mechanism's motion (within 1 mm)."""
+    from toolkit.conventions import joint_to_pose, transform_points
+
+    a, b = knee_model.springs.ma.apply(knee_model.grid.X)[1], knee_model.springs.mb.apply(knee_model.grid.X)[1]
+    T0 = joint_to_pose(volunteer.solve(0.0)[0])
+    res = volunteer.sweep(np.radians(np.arange(0, 121, 10.0)))
+    bt = transform_points(res.tf_poses @ np.linalg.inv(T0), b[None, :])[:, 0]
+    L = np.linalg.norm(bt - a, axis=1)
+    assert L.std() < 1.0 and L.min() > 10.0
