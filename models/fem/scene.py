@@ -25,6 +25,12 @@ BONE_DENSITY = 1.9e-9   # tonne/mm^3
 
 @dataclass
 class FemSettings:
+    """Settings of the association model (mm, MPa, N/mm, s). ``n_across`` cells across x and z;
+    ``element_size`` along the limb, graded down to ``joint_size`` within ``joint_half_width`` of the joint
+    line (``n_along`` instead gives a uniform grid, e.g. the paper's 300); ``shaft_length`` of the phantom
+    bones; ``cartilage`` set-back of the articular surfaces; materials, collateral spring stiffness,
+    contact penalty and reach, time step and Rayleigh damping; ``bone_tets`` the target element count."""
+
     n_across: int = 7
     element_size: float = 18.0
     joint_size: float = 3.0
@@ -47,6 +53,9 @@ class FemSettings:
 
 @dataclass
 class AssociationModel:
+    """The assembled model: the grid, its force fields, the integrator, and the surfaces it carries
+    (skin vertices (S, 3) and faces at extension, femur and tibia surfaces at rest, femur frame)."""
+
     grid: object
     femur: MappedBoneElasticity
     tibia: MappedBoneElasticity
