@@ -552,3 +552,47 @@ class Mechanism:
         dz = -np.linalg.solve(Fz, rhs)
         dy = np.concatenate([ya[:, :, None], yp], axis=2) + yz @ dz
         return Sensitivity(flexion=al, d_flexion=dy[:, :, 0], d_params=dy[:, :, 1:])
+
+
+def quick_tf_sweep(params_vector, kinds, x_start, alphas, compile: bool | None = None):
+    """TF motion of a parameter vector without building a :class:`Mechanism` (for optimisers).
+
+    Newton from ``x_start`` (the TF unknowns, (5,)) at ``alphas[0]``, then continuation along ``alphas``
+    (rad, (n,)). Returns ``(tf (n, 6), residual (n,), ok, condition (n,))`` where ``ok`` is False when any
+    angle fails to close (residual above ``RESIDUAL_TOL``) or the path jumps between branches.
+    """
+    b = compiled.backend(tuple(kinds), False, compile)
+    p = np.asarray(params_vector, dtype=float)
+    al = np.asarray(alphas, dtype=float)
+    f = b.tf_newton
+    f.owner = None
+    f.inputs[0][:] = x_start
+    f.inputs[1][0] = al[0]
+    f.inputs[2][:] = p
+    f.call()
+    x0 = f.outputs[0].copy()
+    if not np.all(np.abs(f.outputs[1]) < RESIDUAL_TOL):
+        return np.full((al.size, 6), np.nan), np.full(al.size, np.inf), False, np.full(al.size, np.inf)
+    sw = b.sweep
+    sw.owner = None
+    sw.inputs[2][:] = p
+    sw.inputs[3][0] = 0.0
+    n, C = al.size, closure.CHUNK
+    states = np.empty((n, closure.N_STATE))
+    diags = np.empty((n, closure.N_DIAG))
+    state = _fresh(x0, 0.0, al[0])
+    for k in range(0, n, C):
+        m = min(C, n - k)
+        sw.inputs[0][:] = state
+        sw.inputs[1][:m] = al[k:k + m]
+        sw.inputs[1][m:] = al[k + m - 1]
+        sw.call()
+        states[k:k + m] = sw.outputs[0].reshape(C, closure.N_STATE)[:m]
+        diags[k:k + m] = sw.outputs[1].reshape(C, closure.N_DIAG)[:m]
+        state = states[k + m - 1]
+    res = np.abs(diags[:, :5]).max(axis=1)
+    jump = detect_jumps(x0, al[0], states[:, :5], al)
+    ok = bool(np.all(res < RESIDUAL_TOL) and not jump.any())
+    tf = np.column_stack([states[:, 6], states[:, :5]])
+    cond = condition_numbers(diags[:, 6:31].reshape(n, 5, 5).transpose(0, 2, 1)) if ok else np.full(n, np.inf)
+    return tf, res, ok, cond

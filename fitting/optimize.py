@@ -1,0 +1,261 @@
+"""Bounded optimisation of a mechanism's tibio-femoral geometry against a measured motion (seed 002,
+section 2.4; issue "fit a subject-specific mechanism", step 6).
+
+Variables (the paper's 35 TF parameters): the ten link endpoints, each an offset from its first estimate
+confined to a ball of radius ``radius`` mm (2 mm in the paper) by the smooth map
+``offset = radius * tanh(|w|) * w / |w|``, and the five lengths (or sphere-plane distances), each within
+``length_range`` mm of its first estimate by ``length_range * tanh(w)``. The objective: the squared
+differences between the model's and the measured TF components (adduction and internal rotation in
+degrees, the three translations in mm) at the measured flexion angles. A candidate that does not
+assemble over the measured range, jumps between branches, or comes close to a singularity (Jacobian
+condition number above ``max_condition``) is rejected (a large constant residual).
+
+Stages: a global one (``scipy.optimize.differential_evolution``, seeded, on the unconstrained variables
+within +-``w_box``), then a local Gauss-Newton (``scipy.optimize.least_squares``) with the exact Jacobian
+from the mechanism's CasADi sensitivities, chained through the two maps above.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.optimize import differential_evolution, least_squares
+
+from models.mechanism.params import LINK_SIZE, InitialPose, MechanismParams
+from models.mechanism.solver import Mechanism, quick_tf_sweep
+from toolkit.errors import KneeInputError
+
+REJECTED = 1e3  # residual (deg or mm) given to every component of a rejected candidate
+
+
+@dataclass
+class Motion:
+    """A measured (or generated) motion: ``tf`` (n, 6) and optionally ``pf`` (n, 6) joint coordinates
+    (rad, mm), one row per frame, TF flexion first."""
+
+    tf: np.ndarray
+    pf: np.ndarray | None = None
+
+    @property
+    def flexion(self) -> np.ndarray:
+        return self.tf[:, 0]
+
+
+def noise_weights(sd=None) -> np.ndarray:
+    """Weights 1/sd for (adduction, internal rotation, anterior, proximal, lateral), normalised so the
+    sagittal translations weigh 1: a maximum-likelihood objective under the measurement noise."""
+    sd = sd or NOISE_SD
+    s = np.array([sd["out_of_plane_deg"], sd["out_of_plane_deg"], sd["sagittal_mm"], sd["sagittal_mm"],
+                  sd["out_of_plane_mm"]])
+    return sd["sagittal_mm"] / s
+
+
+#: Fluoroscopy-like noise (seed 002, 3DV accuracy): about 0.5 mm and 1 deg in the sagittal plane
+#: (flexion, anterior, proximal) and 1.5 mm and 2 deg out of it (adduction, internal rotation, lateral).
+NOISE_SD = {"sagittal_deg": 1.0, "sagittal_mm": 0.5, "out_of_plane_deg": 2.0, "out_of_plane_mm": 1.5}
+
+
+def synthetic_motion(params: MechanismParams, flexion_deg, noise: bool = True, seed: int = 0):
+    """``(measured, truth)`` motions of a parameter set at the given flexion angles (degrees), the
+    measured one with :data:`NOISE_SD` Gaussian noise on every TF and PF component."""
+    mech = Mechanism(params)
+    res = mech.sweep(np.radians(np.asarray(flexion_deg, float)))
+    if not res.complete:
+        raise KneeInputError(f"the model does not assemble over the requested flexion range: {res.message}")
+    truth = Motion(res.tf.copy(), res.pf.copy() if params.has_pf else None)
+    if not noise:
+        return Motion(truth.tf.copy(), None if truth.pf is None else truth.pf.copy()), truth
+    rng = np.random.default_rng(seed)
+    sd = np.array([np.radians(NOISE_SD["sagittal_deg"]), np.radians(NOISE_SD["out_of_plane_deg"]),
+                   np.radians(NOISE_SD["out_of_plane_deg"]), NOISE_SD["sagittal_mm"], NOISE_SD["sagittal_mm"],
+                   NOISE_SD["out_of_plane_mm"]])
+    tf = truth.tf + rng.normal(size=truth.tf.shape) * sd
+    pf = None if truth.pf is None else truth.pf + rng.normal(size=truth.pf.shape) * sd
+    return Motion(tf, pf), truth
+
+
+def _ball(w, radius):
+    """Offsets (k, 3) in the open ball of ``radius`` from unconstrained w (k, 3), and d offset / d w
+    (k, 3, 3)."""
+    r = np.linalg.norm(w, axis=1)
+    safe = np.maximum(r, 1e-12)
+    g = np.where(r > 1e-8, np.tanh(safe) / safe, 1.0 - safe ** 2 / 3)  # tanh(r)/r
+    off = radius * g[:, None] * w
+    # d(g w)/dw = g I + (g'(r)/r) w w^T with g'(r) = (sech^2 r - g)/r
+    dg = np.where(r > 1e-8, (1 / np.cosh(safe) ** 2 - g) / safe, -2 * safe / 3)
+    J = radius * (g[:, None, None] * np.eye(3) + (dg / safe)[:, None, None] * w[:, :, None] * w[:, None, :])
+    return off, J
+
+
+class TFFit:
+    """The fitting problem of the TF group; see the module docstring.
+
+    Parameters
+    ----------
+    first : MechanismParams
+        The first estimate (its endpoints are the centres of the bound balls).
+    motion : Motion
+        The measured motion (rad, mm), frames in the order of the movement (the continuation follows
+        them; small reversals from noise are fine).
+    """
+
+    def __init__(self, first: MechanismParams, motion: Motion, radius: float = 2.0, length_range: float = 5.0,
+                 max_condition: float = 1e4, weights=None):
+        self.first = first
+        self.motion = motion
+        self.radius, self.length_range, self.max_condition = float(radius), float(length_range), max_condition
+        self.p0 = first.to_vector()
+        self.kinds = first.kinds
+        self.n_var = 35
+        if len(motion.tf) < 2 or not np.all(np.isfinite(motion.tf)):
+            raise KneeInputError("the measured motion needs at least two finite frames")
+        self.alphas = motion.flexion
+        self.x_start = motion.tf[0, 1:]
+        self.evaluations = 0
+        # per-component weights on (adduction deg, internal rotation deg, anterior, proximal, lateral mm)
+        self.weights = np.ones(5) if weights is None else np.asarray(weights, float)
+
+    # -- parameter maps ------------------------------------------------------------------------
+    def params_vector(self, w) -> np.ndarray:
+        w = np.asarray(w, float)
+        off, _ = _ball(w[:30].reshape(10, 3), self.radius)
+        p = self.p0.copy()
+        for i in range(5):
+            o = i * LINK_SIZE
+            p[o:o + 3] += off[2 * i]
+            p[o + 3:o + 6] += off[2 * i + 1]
+            p[o + 9] += self.length_range * np.tanh(w[30 + i])
+        return p
+
+    def params(self, w) -> MechanismParams:
+        return self.first.with_vector(self.params_vector(w))
+
+    def _dparams_dw(self, w) -> np.ndarray:
+        """d(flat parameter vector)/dw, (N_PARAMS, 35)."""
+        w = np.asarray(w, float)
+        _, Jb = _ball(w[:30].reshape(10, 3), self.radius)
+        D = np.zeros((self.p0.size, 35))
+        for i in range(5):
+            o = i * LINK_SIZE
+            D[o:o + 3, 6 * i:6 * i + 3] = Jb[2 * i]
+            D[o + 3:o + 6, 6 * i + 3:6 * i + 6] = Jb[2 * i + 1]
+            D[o + 9, 30 + i] = self.length_range / np.cosh(w[30 + i]) ** 2
+        return D
+
+    # -- objective -----------------------------------------------------------------------------
+    def model_motion(self, w):
+        """(tf (n, 6), ok) of the candidate at the measured flexion angles."""
+        tf, _, ok, cond = quick_tf_sweep(self.params_vector(w), self.kinds, self.x_start, self.alphas)
+        self.evaluations += 1
+        return tf, bool(ok and np.all(cond < self.max_condition))
+
+    @staticmethod
+    def _units(d):
+        d = np.array(d, copy=True)
+        d[:, :2] = np.degrees(d[:, :2])
+        return d
+
+    def residuals(self, w) -> np.ndarray:
+        """(5 n,) model minus measured: adduction, internal rotation (deg), translations (mm)."""
+        tf, ok = self.model_motion(w)
+        if not ok:
+            return np.full(5 * len(self.alphas), REJECTED)
+        return (self._units(tf[:, 1:] - self.motion.tf[:, 1:]) * self.weights).ravel()
+
+    def cost(self, w) -> float:
+        r = self.residuals(w)
+        return float(r @ r)
+
+    def jacobian(self, w) -> np.ndarray:
+        """Exact d residuals / d w, (5 n, 35), from the mechanism's sensitivities."""
+        p = self.params(w)
+        tf, ok = self.model_motion(w)
+        if not ok:
+            return np.zeros((5 * len(self.alphas), 35))
+        p = replace(p, initial=InitialPose(float(self.alphas[0]), tf[0, 1:].copy()), pf=None)
+        sens = Mechanism(p).sensitivities(self.alphas)
+        dq = sens.d_params[:, 1:6, :]  # (n, 5, N_PARAMS): beta, gamma, P
+        dq = dq.copy()
+        dq[:, :2, :] = np.degrees(dq[:, :2, :])
+        dq = dq * self.weights[None, :, None]
+        return (dq.reshape(-1, self.p0.size) @ self._dparams_dw(w))
+
+
+@dataclass
+class FitResult:
+    params: MechanismParams
+    w: np.ndarray
+    cost_first: float
+    cost_global: float
+    cost_final: float
+    evaluations: int
+    seconds: float
+    mae: np.ndarray  # (5,) of the fitted model vs the measured motion: deg, deg, mm, mm, mm
+
+
+def fit_tf(first: MechanismParams, motion: Motion, seed: int = 0, global_stage: bool = True,
+           popsize: int = 12, maxiter: int = 15, w_box: float = 2.5, local_starts: int = 6,
+           progress: bool = False, **kwargs) -> FitResult:
+    """Fit the TF group of ``first`` to ``motion`` (see the module docstring).
+
+    The local stage runs from the first estimate and from the ``local_starts`` best distinct members of
+    the global stage's final population, and keeps the lowest cost.
+    """
+    t0 = time.perf_counter()
+    prob = TFFit(first, motion, **kwargs)
+    w = np.zeros(35)
+    cost_first = prob.cost(w)
+    cost_global = cost_first
+    if global_stage:
+        bounds = [(-w_box, w_box)] * 35
+        gen = [0]
+
+        def cb(xk, convergence=None):
+            gen[0] += 1
+            if progress:
+                print(f"\r  global stage: generation {gen[0]}/{maxiter}", end="", file=sys.stderr, flush=True)
+
+        de = differential_evolution(prob.cost, bounds, seed=seed, popsize=popsize, maxiter=maxiter, tol=1e-8,
+                                    polish=False, init="latinhypercube", x0=w, callback=cb, updating="immediate")
+        if progress:
+            print(file=sys.stderr)
+        order = np.argsort(de.population_energies)
+        starts = [w] + [de.population[i] for i in order[:local_starts]]
+        if de.fun < cost_first:
+            w, cost_global = de.x, float(de.fun)
+    else:
+        starts = [w]
+    best_w, best_cost = w, cost_global
+    for k, w0 in enumerate(starts):
+        if not prob.model_motion(w0)[1]:
+            continue
+        ls = least_squares(prob.residuals, w0, jac=prob.jacobian, method="trf", x_scale="jac", max_nfev=40)
+        if progress:
+            print(f"  local stage {k + 1}/{len(starts)}: cost {2 * ls.cost:.4g}", file=sys.stderr, flush=True)
+        if 2 * ls.cost < best_cost:
+            best_w, best_cost = ls.x, 2 * ls.cost
+    w = best_w
+    if not prob.model_motion(w)[1]:
+        raise KneeInputError("no candidate within the bounds assembles over the measured range")
+    r = prob.residuals(w)
+    mae = np.abs(r.reshape(-1, 5) / prob.weights).mean(axis=0)
+    return FitResult(params=prob.params(w), w=w, cost_first=cost_first, cost_global=cost_global,
+                     cost_final=float(r @ r), evaluations=prob.evaluations, seconds=time.perf_counter() - t0,
+                     mae=mae)
+
+
+def motion_mae(params: MechanismParams, truth: Motion) -> np.ndarray:
+    """Mean absolute differences (adduction, internal rotation in deg; three translations in mm; and
+    flexion is the input) between a parameter set's TF motion and ``truth`` at truth's flexion angles."""
+    tf, _, ok, _ = quick_tf_sweep(params.to_vector(), params.kinds, truth.tf[0, 1:], truth.flexion)
+    if not ok:
+        return np.full(5, np.inf)
+    d = tf[:, 1:] - truth.tf[:, 1:]
+    d[:, :2] = np.degrees(d[:, :2])
+    return np.abs(d).mean(axis=0)
+
+
