@@ -78,6 +78,18 @@ def synthetic_motion(params: MechanismParams, flexion_deg, noise: bool = True, s
     return Motion(tf, pf), truth
 
 
+def perturb_endpoints(params: MechanismParams, low: float = 0.5, high: float = 2.0, seed: int = 0) -> MechanismParams:
+    """A copy with every TF link endpoint moved in a random direction by a random distance in
+    [low, high] mm (a first estimate within the paper's 2 mm of the truth)."""
+    rng = np.random.default_rng(seed)
+    v = params.to_vector().copy()
+    for i in range(5):
+        for part in (0, 3):
+            d = rng.normal(size=3)
+            v[LINK_SIZE * i + part:LINK_SIZE * i + part + 3] += d * rng.uniform(low, high) / np.linalg.norm(d)
+    return params.with_vector(v)
+
+
 def _ball(w, radius):
     """Offsets (k, 3) in the open ball of ``radius`` from unconstrained w (k, 3), and d offset / d w
     (k, 3, 3)."""

@@ -23,18 +23,12 @@ def main():
     args = ap.parse_args()
     from scipy.optimize import least_squares
 
-    from fitting.optimize import TFFit, fit_tf, motion_mae, noise_weights, synthetic_motion
+    from fitting.optimize import TFFit, fit_tf, motion_mae, noise_weights, perturb_endpoints, synthetic_motion
     from models.mechanism import load_model
 
     truth_p = load_model("volunteer")
     meas, truth = synthetic_motion(truth_p, np.linspace(0, 120, 60), seed=1)
-    rng = np.random.default_rng(7)
-    v = truth_p.to_vector().copy()
-    for i in range(5):
-        for part in (0, 3):
-            d = rng.normal(size=3)
-            v[10 * i + part:10 * i + part + 3] += d * rng.uniform(0.5, 2.0) / np.linalg.norm(d)
-    first = truth_p.with_vector(v)
+    first = perturb_endpoints(truth_p, 0.5, 2.0, seed=7)
     fit_times, maes = [], []
     for k in range(args.repeat):
         t = time.perf_counter()

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from fitting.optimize import (NOISE_SD, REJECTED, TFFit, _ball, fit_tf, motion_mae, noise_weights,
-                              synthetic_motion)
+                              perturb_endpoints, synthetic_motion)
 from models.mechanism import load_model
 
 
@@ -70,13 +70,7 @@ def test_recovery_from_perturbed_first_estimates_with_noise():
     35 parameters, see the session notes)."""
     truth_p = load_model("volunteer")
     meas, truth = synthetic_motion(truth_p, np.linspace(0, 120, 240), seed=2)
-    rng = np.random.default_rng(102)
-    v = truth_p.to_vector().copy()
-    for i in range(5):
-        for part in (0, 3):
-            d = rng.normal(size=3)
-            v[10 * i + part:10 * i + part + 3] += d * rng.uniform(0.5, 2.0) / np.linalg.norm(d)
-    first = truth_p.with_vector(v)
+    first = perturb_endpoints(truth_p, 0.5, 2.0, seed=102)
     assert np.any(motion_mae(first, truth) > 1.0)  # the first estimate is clearly off
     res = fit_tf(first, meas, seed=2, weights=noise_weights())
     mae = motion_mae(res.params, truth)

@@ -74,6 +74,24 @@ def detect_jumps(x0, a0, x, alpha) -> np.ndarray:
     return jump
 
 
+def _run_chunks(sw, state, al):
+    """Run the compiled chunked sweep ``sw`` (inputs already holding p and psi_ref) along angles ``al``
+    from ``state``; returns (states (n, N_STATE), diags (n, N_DIAG))."""
+    n, C = al.size, closure.CHUNK
+    states = np.empty((n, closure.N_STATE))
+    diags = np.empty((n, closure.N_DIAG))
+    for k in range(0, n, C):
+        m = min(C, n - k)
+        sw.inputs[0][:] = state
+        sw.inputs[1][:m] = al[k:k + m]
+        sw.inputs[1][m:] = al[k + m - 1]
+        sw.call()
+        states[k:k + m] = sw.outputs[0].reshape(C, closure.N_STATE)[:m]
+        diags[k:k + m] = sw.outputs[1].reshape(C, closure.N_DIAG)[:m]
+        state = states[k + m - 1]
+    return states, diags
+
+
 def condition_numbers(J: np.ndarray) -> np.ndarray:
     """2-norm condition numbers of (n, k, k) matrices.
 
@@ -433,20 +451,10 @@ class Mechanism:
                                 f"{math.degrees(al[0]):.2f} deg is outside the assembly range "
                                 f"{lo:.2f} to {hi:.2f} deg of {self.params.name}; nothing solved", None)
         sw = self.backend.sweep
-        n, C = al.size, closure.CHUNK
-        states = np.empty((n, closure.N_STATE))
-        diags = np.empty((n, closure.N_DIAG))
-        start = state = self._nearest(al[0])
+        n = al.size
+        start = self._nearest(al[0])
         self._claim(sw)
-        for k in range(0, n, C):
-            m = min(C, n - k)
-            sw.inputs[0][:] = state
-            sw.inputs[1][:m] = al[k:k + m]
-            sw.inputs[1][m:] = al[k + m - 1]
-            sw.call()
-            states[k:k + m] = sw.outputs[0].reshape(C, closure.N_STATE)[:m]
-            diags[k:k + m] = sw.outputs[1].reshape(C, closure.N_DIAG)[:m]
-            state = states[k + m - 1]
+        states, diags = _run_chunks(sw, start, al)
         # checks, vectorised: convergence, then jumps between branches
         res = np.abs(diags[:, :6] if self.has_pf else diags[:, :5]).max(axis=1)
         bad = ~(res < RESIDUAL_TOL)
@@ -577,19 +585,8 @@ def quick_tf_sweep(params_vector, kinds, x_start, alphas, compile: bool | None =
     sw.owner = None
     sw.inputs[2][:] = p
     sw.inputs[3][0] = 0.0
-    n, C = al.size, closure.CHUNK
-    states = np.empty((n, closure.N_STATE))
-    diags = np.empty((n, closure.N_DIAG))
-    state = _fresh(x0, 0.0, al[0])
-    for k in range(0, n, C):
-        m = min(C, n - k)
-        sw.inputs[0][:] = state
-        sw.inputs[1][:m] = al[k:k + m]
-        sw.inputs[1][m:] = al[k + m - 1]
-        sw.call()
-        states[k:k + m] = sw.outputs[0].reshape(C, closure.N_STATE)[:m]
-        diags[k:k + m] = sw.outputs[1].reshape(C, closure.N_DIAG)[:m]
-        state = states[k + m - 1]
+    n = al.size
+    states, diags = _run_chunks(sw, _fresh(x0, 0.0, al[0]), al)
     res = np.abs(diags[:, :5]).max(axis=1)
     jump = detect_jumps(x0, al[0], states[:, :5], al)
     ok = bool(np.all(res < RESIDUAL_TOL) and not jump.any())
