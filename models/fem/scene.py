@@ -18,6 +18,7 @@ from models.fem.integrator import ImplicitEuler
 from models.mechanism.solver import Mechanism
 from models.phantom import build_phantom
 from toolkit.conventions import joint_to_pose, transform_points
+from toolkit.geometry import least_varying_pair
 
 SOFT_DENSITY = 1.0e-9   # tonne/mm^3 (1000 kg/m^3)
 BONE_DENSITY = 1.9e-9   # tonne/mm^3
@@ -88,9 +89,7 @@ def isometric_lateral_pair(mech: Mechanism, femur_vertices, tibia_vertices, T0, 
     ct = ct[:: max(1, len(ct) // 150)]
     al = [a for a in angles_deg if mech.in_range(np.radians(a))]
     poses = joint_to_pose(mech.sweep(np.radians(np.asarray(al, float))).tf) @ np.linalg.inv(T0)
-    tp = np.einsum("kij,tj->kti", poses[:, :3, :3], ct) + poses[:, None, :3, 3]  # (angles, Nt, 3)
-    L = np.linalg.norm(cf[None, :, None, :] - tp[:, None, :, :], axis=3)        # (angles, Nf, Nt)
-    i, j = np.unravel_index(np.argmin(L.std(axis=0)), L.shape[1:])
+    i, j, _, _ = least_varying_pair(cf, ct, poses)
     return cf[i], ct[j]
 
 
