@@ -17,16 +17,15 @@ from the mechanism's CasADi sensitivities, chained through the two maps above.
 
 from __future__ import annotations
 
-import math
 import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import differential_evolution, least_squares
 
-from models.mechanism.params import LINK_SIZE, InitialPose, MechanismParams
-from models.mechanism.solver import Mechanism, quick_tf_sweep
+from models.mechanism.params import LINK_SIZE, MechanismParams
+from models.mechanism.solver import Mechanism, quick_tf_sweep, tf_sensitivities
 from toolkit.errors import KneeInputError
 
 REJECTED = 1e3  # residual (deg or mm) given to every component of a rejected candidate
@@ -184,14 +183,11 @@ class TFFit:
 
     def jacobian(self, w) -> np.ndarray:
         """Exact d residuals / d w, (5 n, 35), from the mechanism's sensitivities."""
-        p = self.params(w)
         tf, ok = self.model_motion(w)
         if not ok:
             return np.zeros((5 * len(self.alphas), 35))
-        p = replace(p, initial=InitialPose(float(self.alphas[0]), tf[0, 1:].copy()), pf=None)
-        sens = Mechanism(p).sensitivities(self.alphas)
-        dq = sens.d_params[:, 1:6, :]  # (n, 5, N_PARAMS): beta, gamma, P
-        dq = dq.copy()
+        sens = tf_sensitivities(self.params_vector(w), self.kinds, tf)
+        dq = sens.d_params[:, 1:6, :].copy()  # (n, 5, N_PARAMS): beta, gamma, P
         dq[:, :2, :] = np.degrees(dq[:, :2, :])
         dq = dq * self.weights[None, :, None]
         return (dq.reshape(-1, self.p0.size) @ self._dparams_dw(w))

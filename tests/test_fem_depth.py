@@ -44,10 +44,18 @@ def test_backprojected_points_lie_on_the_surface(knee_like):
     pts = backproject(d, cam.K, cam.T_world_cam)
     sd = SurfaceQuery.of(knee_like).signed_distance(pts)
     assert np.abs(sd).max() < 0.2  # open3d casts rays in float32
-    # one-sided: only the side facing the camera is seen
-    n = knee_like.vertex_normals
-    facing = (n * (cam.T_world_cam[:3, 3] - knee_like.vertices)).sum(1) > 0
-    assert pts @ cam.T_world_cam[:3, 2] is not None and facing.mean() < 0.8
+    # one-sided: every point seen lies on a face turned towards the camera
+    q = SurfaceQuery.of(knee_like)
+    eps = 0.5
+    to_cam = cam.T_world_cam[:3, 3] - pts
+    to_cam /= np.linalg.norm(to_cam, axis=1, keepdims=True)
+    assert np.all(q.signed_distance(pts + eps * to_cam) > 0)  # a step towards the camera is outside
+    # and well under the whole surface is seen (the far side is not)
+    from scipy.spatial import cKDTree
+
+    surf = knee_like.sample(20000, seed=0)
+    seen_fraction = np.mean(cKDTree(pts).query(surf)[0] < 1.5)
+    assert 0.2 < seen_fraction < 0.6
 
 
 def test_noise_model_statistics():
@@ -77,6 +85,19 @@ def test_depth_image_and_point_cloud_files(tmp_path, knee_like):
         load_point_cloud(tmp_path / "missing.ply")
     with pytest.raises(KneeInputError, match="intrinsics"):
         backproject(d, np.eye(2))
+    with pytest.raises(KneeInputError, match="2-D"):
+        backproject(d.ravel(), cam.K)
+    with pytest.raises(KneeInputError, match="no such depth image"):
+        load_depth_image(tmp_path / "missing.png", cam.K)
+    empty = tmp_path / "empty.ply"
+    empty.write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
+                     "property float z\nend_header\n")
+    with pytest.raises(KneeInputError, match="no points"):
+        load_point_cloud(empty)
+    with pytest.raises(KneeInputError, match="coincide"):
+        Camera.looking_at([1, 2, 3], [1, 2, 3])
+    with pytest.raises(KneeInputError, match="parallel"):
+        Camera.looking_at([0, 0, 0], [0, 10, 0], up=[0, 1, 0])
 
 
 def test_icp_recovers_a_rigid_offset(volunteer):

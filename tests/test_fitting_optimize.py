@@ -34,11 +34,29 @@ def test_synthetic_noise_levels():
 def test_exact_jacobian_matches_finite_differences():
     meas, _ = synthetic_motion(load_model("volunteer"), np.linspace(10, 110, 20), seed=0)
     prob = TFFit(load_model("volunteer"), meas, weights=noise_weights())
-    w = np.random.default_rng(1).normal(0, 0.3, 35)
+    rng = np.random.default_rng(1)
+    w = rng.normal(0, 0.3, 35)
+    while not prob.model_motion(w)[1]:  # a candidate that assembles (a rejected one has zero derivatives)
+        w = rng.normal(0, 0.3, 35)
     J = prob.jacobian(w)
+    assert np.abs(J).max() > 1.0
     h = 1e-6
     fd = np.column_stack([(prob.residuals(w + h * e) - prob.residuals(w - h * e)) / (2 * h) for e in np.eye(35)])
     np.testing.assert_allclose(J, fd, atol=1e-5 * np.abs(fd).max())
+
+
+def test_bad_motion_and_unreachable_fits_are_clear_errors():
+    from fitting.optimize import Motion
+    from toolkit.errors import KneeInputError
+
+    with pytest.raises(KneeInputError, match="at least two finite frames"):
+        TFFit(load_model("volunteer"), Motion(np.zeros((1, 6))))
+    bad = synthetic_motion(load_model("volunteer"), np.linspace(0, 120, 10), noise=False)[0]
+    bad.tf[3, 2] = np.nan
+    with pytest.raises(KneeInputError, match="at least two finite frames"):
+        TFFit(load_model("volunteer"), bad)
+    with pytest.raises(KneeInputError, match="does not assemble over the requested flexion range"):
+        synthetic_motion(load_model("volunteer"), [0.0, 140.0])
 
 
 def test_candidates_that_do_not_assemble_are_rejected():

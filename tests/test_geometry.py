@@ -72,3 +72,12 @@ def test_least_varying_pair_finds_the_planted_link():
     poses[:, :3, 3] = a_s + 20.0 * u - np.einsum("fij,j->fi", R, b_s)
     i, j, L, sd = least_varying_pair(a, b, poses, chunk=16)
     assert (i, j) == (17, 41) and sd < 1e-12 and np.allclose(L, 20.0)
+
+
+def test_bad_point_arrays_are_named():
+    with pytest.raises(KneeInputError, match=r"sphere fit: points must be an \(n, 3\) array"):
+        fit_sphere(np.zeros((10, 2)))
+    with pytest.raises(KneeInputError, match="sphere fit: needs at least 4 points"):
+        fit_sphere(np.zeros((3, 3)))
+    with pytest.raises(KneeInputError, match="plane fit: points must be finite"):
+        fit_plane(np.array([[0, 0, 0], [1, 0, 0], [0, np.nan, 0]]))

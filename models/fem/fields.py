@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.spatial import cKDTree
 
 from models.fem.assembly import PatternAssembler
 from models.fem.elements import CorotationalElements
@@ -132,11 +133,8 @@ class MappedPenaltyContact:
     """
 
     def __init__(self, grid, points_a, points_b, k=50.0, distance=10.0):
-        from scipy.spatial import cKDTree
-
         self.ma, self.mb = TrilinearMapping(grid, points_a), TrilinearMapping(grid, points_b)
         self.k, self.distance = float(k), float(distance)
-        self._tree_cls = cKDTree
         # activation distance per point of A: 10 mm, or its rest distance to B if closer (bones that
         # touch at rest are force-free at rest)
         d0, _ = cKDTree(np.atleast_2d(points_b)).query(np.atleast_2d(points_a))
@@ -147,7 +145,7 @@ class MappedPenaltyContact:
 
     def forces(self, x):
         pa, pb = self.ma.apply(x), self.mb.apply(x)
-        d, j = self._tree_cls(pb).query(pa, distance_upper_bound=self.distance)
+        d, j = cKDTree(pb).query(pa, distance_upper_bound=self.distance)
         i = np.nonzero(d < self.reach)[0]
         j = j[i]
         sep = pa[i] - pb[j]

@@ -23,14 +23,14 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from models.fem.mapping import TrilinearMapping
+from toolkit.geometry import principal_axes as _principal_axes
 
 PAPER_BONE_FORCES = (9000.0, 23000.0, 3000.0, 6000.0)
 
 
 def principal_axes(points) -> np.ndarray:
-    """Principal axes (3, 3), rows by decreasing variance."""
-    p = np.asarray(points, float)
-    return np.linalg.svd(p - p.mean(axis=0), full_matrices=False)[2]
+    """Principal axes (3, 3), rows by decreasing variance (toolkit.geometry.principal_axes)."""
+    return _principal_axes(points)[1]
 
 
 class BoneForces:
@@ -54,8 +54,11 @@ class BoneForces:
         self.fossa = np.nonzero(cond)[0][np.argsort(np.abs(Xf[cond, 2] - np.median(Xf[cond, 2])))[:n_points]]
         self.shaft_t = np.argsort(Xt[:, 1])[:n_points]                   # tibial shaft end
         self.n = n_points
-        self._ref_f = principal_axes(Xf)
-        self._ref_t = principal_axes(Xt)
+        # the rest principal axes closest to the bone frames' x (antero-posterior) and y (long) axes
+        af0, at0 = principal_axes(Xf), principal_axes(Xt)
+        self._ap_f0 = self._axis(af0, np.array([1.0, 0.0, 0.0]))
+        self._long_f0 = self._axis(af0, np.array([0.0, 1.0, 0.0]))
+        self._ap_t0 = self._axis(at0, np.array([1.0, 0.0, 0.0]))
         self.directions = {}
 
     @staticmethod
@@ -68,9 +71,9 @@ class BoneForces:
         pf, pt = self.femur.bone_positions(x), self.tibia.bone_positions(x)
         af, at_ = principal_axes(pf), principal_axes(pt)
         # which current axis is antero-posterior / long: the one closest to the rest one (sign kept)
-        ap_f = self._axis(af, self._axis_rest(self._ref_f, 0, af))
-        long_f = self._axis(af, self._axis_rest(self._ref_f, 1, af))
-        ap_t = self._axis(at_, self._axis_rest(self._ref_t, 0, at_))
+        ap_f = self._axis(af, self._ap_f0)
+        long_f = self._axis(af, self._long_f0)
+        ap_t = self._axis(at_, self._ap_t0)
         ff = np.zeros_like(pf)
         ff[self.shaft_f] += F1 * ap_f / self.n
         ff[self.fossa] += -F2 * ap_f / self.n - F3 * long_f / self.n
@@ -78,12 +81,6 @@ class BoneForces:
         ft[self.shaft_t] += -F4 * ap_t / self.n
         self.directions = {"F1": ap_f, "F2": -ap_f, "F3": -long_f, "F4": -ap_t}
         return self.femur.map.apply_transpose(ff) + self.tibia.map.apply_transpose(ft)
-
-    def _axis_rest(self, ref_axes, which, current):
-        """The rest principal axis most aligned with the bone frame's x (which=0) or y (which=1)."""
-        e = np.eye(3)[which]
-        return self._axis(ref_axes, e)
-
 
 class SurfaceForces:
     """Springs from skin points (embedded in the grid) to their nearest depth points."""

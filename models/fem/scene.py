@@ -18,7 +18,7 @@ from models.fem.integrator import ImplicitEuler
 from models.mechanism.solver import Mechanism
 from models.phantom import build_phantom
 from toolkit.conventions import joint_to_pose, transform_points
-from toolkit.geometry import least_varying_pair
+from toolkit.geometry import least_varying_pair, rigid_register
 
 SOFT_DENSITY = 1.0e-9   # tonne/mm^3 (1000 kg/m^3)
 BONE_DENSITY = 1.9e-9   # tonne/mm^3
@@ -152,12 +152,8 @@ def build_association_model(mech: Mechanism, settings: FemSettings | None = None
 
 
 def best_fit_rotation(rest: np.ndarray, current: np.ndarray) -> np.ndarray:
-    """Rotation R (3, 3) minimising |R (rest - mean) - (current - mean)| (Kabsch)."""
-    a = rest - rest.mean(axis=0)
-    b = current - current.mean(axis=0)
-    U, _, Vt = np.linalg.svd(a.T @ b)
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    return Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    """Rotation R (3, 3) of the least-squares rigid fit of ``rest`` onto ``current`` (Kabsch)."""
+    return rigid_register(rest, current)[0][:3, :3]
 
 
 def knee_angles(model: "AssociationModel", x=None):

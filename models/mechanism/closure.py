@@ -190,7 +190,11 @@ def build_tf_newton(kinds):
     return ca.Function("knee_tf_newton", [x0, a, p], [xs, rs], ["x0", "alpha", "p"], ["x", "r"])
 
 
-def build_pf_scan(kinds):
+#: Starts per call of the batched TF Newton solve (multi-start searches).
+BATCH = 256
+
+
+def build_pf_scan():
     """``pf_scan(psi, x, alpha, p) -> r``: tendon residual at the reference pose (theta = 0), used to
     find the PF reference roots; and its derivative in psi."""
     x, a, p, psi, _ = symbols()

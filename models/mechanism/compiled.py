@@ -31,7 +31,7 @@ from models.mechanism import closure
 
 log = logging.getLogger(__name__)
 
-GENERATOR_VERSION = "3"
+GENERATOR_VERSION = "4"
 CFLAGS = ["-O3", "-fPIC", "-shared"]
 
 
@@ -53,8 +53,9 @@ def find_compiler() -> str | None:
 
 def build_functions(kinds, has_pf) -> dict[str, ca.Function]:
     step = closure.build_step(kinds, has_pf)
-    return {"knee_step": step, "knee_sweep": closure.build_sweep(step),
-            "knee_tf_newton": closure.build_tf_newton(kinds)}
+    newton = closure.build_tf_newton(kinds)
+    return {"knee_step": step, "knee_sweep": closure.build_sweep(step), "knee_tf_newton": newton,
+            "knee_tf_newton_batch": newton.map("knee_tf_newton_batch", "serial", closure.BATCH, [1, 2], [])}
 
 
 class _CFunction:
@@ -146,6 +147,7 @@ class Backend:
         self.step = wrap["knee_step"]
         self.sweep = wrap["knee_sweep"]
         self.tf_newton = wrap["knee_tf_newton"]
+        self.tf_newton_batch = wrap["knee_tf_newton_batch"]
 
 
 _BACKENDS: dict = {}

@@ -111,6 +111,36 @@ def condition_numbers(J: np.ndarray) -> np.ndarray:
     return c
 
 
+_SENS_FNS: dict = {}
+
+
+def _sensitivities(kinds, has_pf, Z, al, p) -> Sensitivity:
+    """Implicit-function derivatives of the joint coordinates at solved states ``Z`` (n, nz) and
+    angles ``al`` (n,), for the flat parameter vector ``p`` (see closure.build_sensitivity)."""
+    key = (tuple(kinds), bool(has_pf))
+    if key not in _SENS_FNS:
+        _SENS_FNS[key] = closure.build_sensitivity(*key)
+    n, nz = Z.shape
+    out = _SENS_FNS[key].map(n)(Z.T, al[None, :], np.tile(p[:, None], (1, n)))
+    k = 12 if has_pf else 6
+
+    def blocks(m, rows, cols):  # map() stacks the n per-angle blocks horizontally
+        return np.asarray(m).reshape(rows, n, cols).transpose(1, 0, 2)
+
+    Fz, Fa, Fp = blocks(out[1], nz, nz), blocks(out[2], nz, 1)[:, :, 0], blocks(out[3], nz, N_PARAMS)
+    yz, ya, yp = blocks(out[5], k, nz), blocks(out[6], k, 1)[:, :, 0], blocks(out[7], k, N_PARAMS)
+    dz = -np.linalg.solve(Fz, np.concatenate([Fa[:, :, None], Fp], axis=2))
+    dy = np.concatenate([ya[:, :, None], yp], axis=2) + yz @ dz
+    return Sensitivity(flexion=al, d_flexion=dy[:, :, 0], d_params=dy[:, :, 1:])
+
+
+def tf_sensitivities(params_vector, kinds, tf) -> Sensitivity:
+    """Derivatives of the TF joint coordinates at already solved TF states ``tf`` (n, 6) (for example from
+    :func:`quick_tf_sweep`), without building a :class:`Mechanism`."""
+    tf = np.asarray(tf, dtype=float)
+    return _sensitivities(kinds, False, tf[:, 1:], tf[:, 0].copy(), np.asarray(params_vector, float))
+
+
 def _fresh(x, psi, alpha):
     """A continuation state with no history: the previous solution equals the current one."""
     cur = np.r_[x, psi, alpha]
@@ -229,7 +259,6 @@ class Mechanism:
         self.backend = compiled.backend(params.kinds, params.has_pf, compile)
         self.has_pf = params.has_pf
         self.psi_ref = 0.0
-        self._sens_fn = None
         self._build_branch()
 
     @classmethod
@@ -359,7 +388,7 @@ class Mechanism:
     def _reference_psi(self, x_ref, a_ref) -> float:
         """The PF reference pose: of the roots of the tendon equation (theta = 0) at the reference
         flexion, the one with the patella's origin most anterior in the femur frame."""
-        fn = closure.build_pf_scan(self.params.kinds)
+        fn = closure.build_pf_scan()
         grid = np.linspace(-math.pi, math.pi, 721)
         vals = np.asarray(fn.map(grid.size)(grid[None, :], x_ref, a_ref, self.p)[0]).ravel()
         roots = []
@@ -507,14 +536,25 @@ class Mechanism:
         rng = np.random.default_rng(seed)
         starts = np.column_stack([rng.uniform(-math.pi / 2, math.pi / 2, (n_starts, 2)),
                                   rng.uniform(-100, 100, (n_starts, 3))])
+        f = self.backend.tf_newton_batch
+        f.owner = None
+        f.inputs[1][0] = flexion
+        f.inputs[2][:] = self.p
+        B = closure.BATCH
+        sols = []
+        for k in range(0, n_starts, B):  # batches of starts through one compiled call each
+            chunk = starts[k:k + B]
+            f.inputs[0][:] = np.vstack([chunk, np.repeat(chunk[-1:], B - len(chunk), axis=0)]).ravel()
+            f.call()
+            x = f.outputs[0].reshape(B, 5)[:len(chunk)]
+            r = f.outputs[1].reshape(B, 5)[:len(chunk)]
+            sols.append(x[np.all(np.abs(r) < RESIDUAL_TOL, axis=1)])
+        x = np.vstack(sols)
+        x[:, :2] = np.arctan2(np.sin(x[:, :2]), np.cos(x[:, :2]))
         modes: list[np.ndarray] = []
-        for x0 in starts:
-            x, r = self._newton(x0, flexion)
-            if not np.all(np.abs(r) < RESIDUAL_TOL):
-                continue
-            x[:2] = np.arctan2(np.sin(x[:2]), np.cos(x[:2]))
-            if not any(np.abs(x - m).max() < 1e-6 for m in modes):
-                modes.append(x)
+        for m in x:  # merge the converged starts into distinct modes (at most 40 of them)
+            if not any(np.abs(m - q).max() < 1e-6 for q in modes):
+                modes.append(m)
         modes.sort(key=lambda m: m[0] ** 2 + m[1] ** 2)
         if not _all and hasattr(self, "_table") and modes and self.in_range(flexion):
             on = self.solve(flexion)[0][1:]
@@ -536,30 +576,12 @@ class Mechanism:
         sw = self.sweep(al)
         if not sw.complete:
             raise AssemblyError(sw.message)
-        if self._sens_fn is None:
-            self._sens_fn = closure.build_sensitivity(self.params.kinds, self.has_pf)
-        n = al.size
         if self.has_pf:
+            n = al.size
             Z = np.column_stack([sw._states[:, :6], np.tile(np.r_[self.x_ref, self.psi_ref], (n, 1))])
         else:
             Z = sw._states[:, :5]
-        fm = self._sens_fn.map(n)
-        out = fm(Z.T, al[None, :], np.tile(self.p[:, None], (1, n)))
-        k, nz = (12 if self.has_pf else 6), Z.shape[1]
-
-        def blocks(m, rows, cols):  # map() stacks the n per-angle blocks horizontally
-            return np.asarray(m).reshape(rows, n, cols).transpose(1, 0, 2)
-
-        Fz = blocks(out[1], nz, nz)
-        Fa = blocks(out[2], nz, 1)[:, :, 0]
-        Fp = blocks(out[3], nz, N_PARAMS)
-        yz = blocks(out[5], k, nz)
-        ya = blocks(out[6], k, 1)[:, :, 0]
-        yp = blocks(out[7], k, N_PARAMS)
-        rhs = np.concatenate([Fa[:, :, None], Fp], axis=2)
-        dz = -np.linalg.solve(Fz, rhs)
-        dy = np.concatenate([ya[:, :, None], yp], axis=2) + yz @ dz
-        return Sensitivity(flexion=al, d_flexion=dy[:, :, 0], d_params=dy[:, :, 1:])
+        return _sensitivities(self.params.kinds, self.has_pf, Z, al, self.p)
 
 
 def quick_tf_sweep(params_vector, kinds, x_start, alphas, compile: bool | None = None):
