@@ -89,16 +89,32 @@ def perturb_endpoints(params: MechanismParams, low: float = 0.5, high: float = 2
     return params.with_vector(v)
 
 
+def dense_grid(flexion, max_gap: float = np.radians(1.0)):
+    """The measured flexion angles sorted, with angles added so that no gap exceeds ``max_gap`` (rad):
+    candidates are swept along it, so a geometry that stops assembling (or crosses a singularity)
+    between two measured frames is caught. Returns ``(grid (m,), index (n,))`` with
+    ``grid[index] == flexion``."""
+    a = np.asarray(flexion, float)
+    u = np.unique(a)
+    fill = [u[:1]]
+    for lo, hi in zip(u[:-1], u[1:]):
+        k = int(np.ceil((hi - lo) / max_gap))
+        fill.append(np.linspace(lo, hi, k + 1)[1:])
+    grid = np.concatenate(fill)
+    idx = np.searchsorted(grid, a)
+    return grid, idx
+
+
 def _ball(w, radius):
-    """Offsets (k, 3) in the open ball of ``radius`` from unconstrained w (k, 3), and d offset / d w
-    (k, 3, 3)."""
+    """Offsets (k, d) in the open ball of ``radius`` from unconstrained w (k, d), and d offset / d w
+    (k, d, d)."""
     r = np.linalg.norm(w, axis=1)
     safe = np.maximum(r, 1e-12)
     g = np.where(r > 1e-8, np.tanh(safe) / safe, 1.0 - safe ** 2 / 3)  # tanh(r)/r
     off = radius * g[:, None] * w
     # d(g w)/dw = g I + (g'(r)/r) w w^T with g'(r) = (sech^2 r - g)/r
     dg = np.where(r > 1e-8, (1 / np.cosh(safe) ** 2 - g) / safe, -2 * safe / 3)
-    J = radius * (g[:, None, None] * np.eye(3) + (dg / safe)[:, None, None] * w[:, :, None] * w[:, None, :])
+    J = radius * (g[:, None, None] * np.eye(w.shape[1]) + (dg / safe)[:, None, None] * w[:, :, None] * w[:, None, :])
     return off, J
 
 
@@ -125,7 +141,8 @@ class TFFit:
         if len(motion.tf) < 2 or not np.all(np.isfinite(motion.tf)):
             raise KneeInputError("the measured motion needs at least two finite frames")
         self.alphas = motion.flexion
-        self.x_start = motion.tf[0, 1:]
+        self.grid, self.index = dense_grid(self.alphas)
+        self.x_start = motion.tf[int(np.argmin(self.alphas)), 1:]
         self.evaluations = 0
         # per-component weights on (adduction deg, internal rotation deg, anterior, proximal, lateral mm)
         self.weights = np.ones(5) if weights is None else np.asarray(weights, float)
@@ -159,10 +176,11 @@ class TFFit:
 
     # -- objective -----------------------------------------------------------------------------
     def model_motion(self, w):
-        """(tf (n, 6), ok) of the candidate at the measured flexion angles."""
-        tf, _, ok, cond = quick_tf_sweep(self.params_vector(w), self.kinds, self.x_start, self.alphas)
+        """(tf (n, 6), ok) of the candidate at the measured flexion angles (swept along
+        :func:`dense_grid`; ok also requires every grid angle's condition number below the limit)."""
+        tf, _, ok, cond = quick_tf_sweep(self.params_vector(w), self.kinds, self.x_start, self.grid)
         self.evaluations += 1
-        return tf, bool(ok and np.all(cond < self.max_condition))
+        return tf[self.index], bool(ok and np.all(cond < self.max_condition))
 
     @staticmethod
     def _units(d):
@@ -205,32 +223,29 @@ class FitResult:
     mae: np.ndarray  # (5,) of the fitted model vs the measured motion: deg, deg, mm, mm, mm
 
 
-def fit_tf(first: MechanismParams, motion: Motion, seed: int = 0, global_stage: bool = True,
-           popsize: int = 12, maxiter: int = 15, w_box: float = 2.5, local_starts: int = 6,
-           progress: bool = False, **kwargs) -> FitResult:
-    """Fit the TF group of ``first`` to ``motion`` (see the module docstring).
+def two_stage(prob, n_var: int, seed: int = 0, global_stage: bool = True, popsize: int = 12, maxiter: int = 15,
+              w_box: float = 2.5, local_starts: int = 6, progress=None, label: str = "fit"):
+    """The paper's two stages on a fitting problem ``prob`` (with ``cost``, ``residuals``, ``jacobian`` and
+    ``model_motion`` of unconstrained variables w, (n_var,)): seeded differential evolution within
+    +-``w_box``, then Gauss-Newton (trust region, exact Jacobian) from the first estimate (w = 0) and from
+    the ``local_starts`` best members of the final population; the lowest cost wins.
 
-    The local stage runs from the first estimate and from the ``local_starts`` best distinct members of
-    the global stage's final population, and keeps the lowest cost.
+    ``progress(fraction, text)`` is called as the work advances. Returns ``(w, cost_first, cost_global)``.
     """
-    t0 = time.perf_counter()
-    prob = TFFit(first, motion, **kwargs)
-    w = np.zeros(35)
+    w = np.zeros(n_var)
     cost_first = prob.cost(w)
     cost_global = cost_first
+    say = progress or (lambda f, t: None)
     if global_stage:
-        bounds = [(-w_box, w_box)] * 35
         gen = [0]
 
         def cb(xk, convergence=None):
             gen[0] += 1
-            if progress:
-                print(f"\r  global stage: generation {gen[0]}/{maxiter}", end="", file=sys.stderr, flush=True)
+            say(0.7 * gen[0] / maxiter, f"{label}: global stage, generation {gen[0]}/{maxiter}")
 
-        de = differential_evolution(prob.cost, bounds, seed=seed, popsize=popsize, maxiter=maxiter, tol=1e-8,
-                                    polish=False, init="latinhypercube", x0=w, callback=cb, updating="immediate")
-        if progress:
-            print(file=sys.stderr)
+        de = differential_evolution(prob.cost, [(-w_box, w_box)] * n_var, seed=seed, popsize=popsize,
+                                    maxiter=maxiter, tol=1e-8, polish=False, init="latinhypercube", x0=w,
+                                    callback=cb, updating="immediate")
         order = np.argsort(de.population_energies)
         starts = [w] + [de.population[i] for i in order[:local_starts]]
         if de.fun < cost_first:
@@ -242,11 +257,36 @@ def fit_tf(first: MechanismParams, motion: Motion, seed: int = 0, global_stage: 
         if not prob.model_motion(w0)[1]:
             continue
         ls = least_squares(prob.residuals, w0, jac=prob.jacobian, method="trf", x_scale="jac", max_nfev=40)
-        if progress:
-            print(f"  local stage {k + 1}/{len(starts)}: cost {2 * ls.cost:.4g}", file=sys.stderr, flush=True)
         if 2 * ls.cost < best_cost:
             best_w, best_cost = ls.x, 2 * ls.cost
-    w = best_w
+        say(0.7 + 0.3 * (k + 1) / len(starts), f"{label}: local stage {k + 1}/{len(starts)}, best cost {best_cost:.4g}")
+    return best_w, cost_first, cost_global
+
+
+def _stderr_progress(enabled: bool):
+    if not enabled:
+        return None
+
+    def say(frac, text):
+        print(f"\r  {text}".ljust(72), end="", file=sys.stderr, flush=True)
+        if frac >= 1.0:
+            print(file=sys.stderr)
+
+    return say
+
+
+def fit_tf(first: MechanismParams, motion: Motion, seed: int = 0, global_stage: bool = True,
+           popsize: int = 12, maxiter: int = 15, w_box: float = 2.5, local_starts: int = 6,
+           progress=False, **kwargs) -> FitResult:
+    """Fit the TF group of ``first`` to ``motion`` (see the module docstring and :func:`two_stage`).
+
+    ``progress``: False, True (a line on standard error) or a callable ``(fraction, text)``.
+    """
+    t0 = time.perf_counter()
+    prob = TFFit(first, motion, **kwargs)
+    say = progress if callable(progress) else _stderr_progress(bool(progress))
+    w, cost_first, cost_global = two_stage(prob, 35, seed, global_stage, popsize, maxiter, w_box, local_starts,
+                                           say, "TF fit")
     if not prob.model_motion(w)[1]:
         raise KneeInputError("no candidate within the bounds assembles over the measured range")
     r = prob.residuals(w)

@@ -28,6 +28,12 @@ from toolkit.conventions import joint_to_pose
 
 DEFAULT_CONDYLE_RADIUS = 22.0
 FACET_RADIUS = 17.0  # horizontal radius of a tibial facet (mm)
+TROCHLEA_OFFSET = 12.0  # distance of the trochlear spheres from the axis point (mm), trochlea="spheres"
+
+
+def trochlea_radius(params: MechanismParams) -> float:
+    """Radius of the phantom's trochlea (cylinder or spheres) about the helical axis (mm)."""
+    return max(float(np.linalg.norm(params.pf.point_patella[:2])) - 20.0, 10.0)
 
 
 @dataclass
@@ -85,13 +91,18 @@ def _sphere(c, r, subdivisions=4) -> trimesh.Trimesh:
     return trimesh.creation.icosphere(subdivisions, r).apply_translation(np.asarray(c, float))
 
 
-def build_phantom(params: MechanismParams, shaft_length: float = 160.0, cartilage: float = 0.0) -> Phantom:
+def build_phantom(params: MechanismParams, shaft_length: float = 160.0, cartilage: float = 0.0,
+                  trochlea: str = "cylinder") -> Phantom:
     """Build the phantom of a parameter set (about 0.2 s); bone shafts reach ``shaft_length`` mm from
     the knee (a knee CT covers about 100-150 mm each way).
 
     With ``cartilage`` > 0 the bones are the subchondral bone: both articular surfaces are set back by
     that thickness (mm), so the posed bones leave a soft joint space of twice that width where the
-    mechanism's contacts touch (the spheres of the contact links describe the cartilage surfaces)."""
+    mechanism's contacts touch (the spheres of the contact links describe the cartilage surfaces).
+
+    ``trochlea``: ``"cylinder"`` (a cylinder on the helical axis) or ``"spheres"`` (two spheres centred on
+    the helical axis, 12 mm either side of its sagittal point: anterior condyles whose sphere fits give
+    the axis back exactly, as the synthetic subject needs)."""
     c = float(cartilage)
     if not 0.0 <= c < 10.0:
         raise ValueError(f"cartilage thickness must be in [0, 10) mm, got {cartilage}")
@@ -118,8 +129,13 @@ def build_phantom(params: MechanismParams, shaft_length: float = 160.0, cartilag
     if pf is not None:
         n = pf.axis_femur / np.linalg.norm(pf.axis_femur)
         # trochlea: a cylinder on the helical axis reaching to the patella's posterior surface
-        tro_r = float(np.linalg.norm(pf.point_patella[:2])) - 20.0
-        fparts.append(_cylinder(pf.point_femur - 22 * n, pf.point_femur + 22 * n, max(tro_r, 10.0)))
+        tro_r = trochlea_radius(params)
+        if trochlea == "spheres":
+            fparts += [_sphere(pf.point_femur + s_ * TROCHLEA_OFFSET * n, max(tro_r, 10.0)) for s_ in (-1, 1)]
+        elif trochlea == "cylinder":
+            fparts.append(_cylinder(pf.point_femur - 22 * n, pf.point_femur + 22 * n, max(tro_r, 10.0)))
+        else:
+            raise ValueError(f"trochlea must be 'cylinder' or 'spheres', got {trochlea!r}")
         # patella: ellipsoid, semi-axes 10 (AP) x 22 (PD) x 20 (ML), between origin and axis
         pat = trimesh.creation.icosphere(4, 1.0)
         pat.apply_scale([10.0, 22.0, 20.0])

@@ -3,6 +3,8 @@
     knee models
     knee sweep MODEL [--from 0] [--to 120] [--step 1] [--out motion.csv] [--rrd sweep.rrd] [--force]
     knee demo [--out DIR]
+    knee synth-subject OUT_DIR [--model volunteer] [--seed N] [--frames 60]
+    knee fit SUBJECT_DIR --out OUT_DIR [--seed N] [--no-global] [--no-recording] [--force]
 
 Angles in degrees, lengths in mm. Bad input gives a one-line ``knee: error: ...`` and exit code 2; no
 existing file is overwritten unless ``--force`` is given.
@@ -151,6 +153,61 @@ def cmd_demo(args) -> int:
     return 0 if res.complete else _err(res.message)
 
 
+class ProgressBar:
+    """A one-line progress bar on standard error: ``[######....]  45%  text``."""
+
+    def __init__(self, width: int = 30, stream=None):
+        self.width = width
+        self.stream = stream or sys.stderr
+        self.last = ""
+
+    def __call__(self, fraction: float, text: str) -> None:
+        f = min(max(float(fraction), 0.0), 1.0)
+        k = int(round(f * self.width))
+        line = f"[{'#' * k}{'.' * (self.width - k)}] {100 * f:3.0f}%  {text}"
+        pad = max(len(self.last) - len(line), 0)
+        self.stream.write("\r" + line + " " * pad)
+        if f >= 1.0:
+            self.stream.write("\n")
+        self.stream.flush()
+        self.last = line
+
+
+def cmd_synth_subject(args) -> int:
+    from fitting.synthetic import make_subject
+
+    out = Path(args.out_dir)
+    print(f"knee synth-subject: writing a synthetic subject from '{args.model}' (seed {args.seed}) ...",
+          file=sys.stderr)
+    make_subject(out, model=args.model, seed=args.seed, frames=args.frames)
+    print(f"subject folder: {out}")
+    print(f"fit it with:    knee fit {out} --out {out}-fit")
+    return 0
+
+
+def cmd_fit(args) -> int:
+    from fitting.pipeline import run_fit
+
+    bar = ProgressBar() if not args.quiet else None
+    o = run_fit(args.subject_dir, args.out, seed=args.seed, global_stage=not args.no_global, progress=bar,
+                force=args.force, recording=not args.no_recording)
+    fe = o.fitted_errors
+    print(f"subject {o.subject.name}: fitted on {len(o.motion.tf)} frames in {o.seconds['fit']:.1f} s "
+          f"(total {o.seconds['total']:.1f} s)")
+    names = ("adduction", "int.rot", "anterior", "proximal", "lateral")
+    print("TF MAE  " + "  ".join(f"{n} {v:.2f}" for n, v in zip(names, fe["tf"]["mae"][1:])) + "  (deg, mm)")
+    if "pf" in fe:
+        pn = ("flexion", "tilt", "rotation", "anterior", "proximal", "lateral")
+        print("PF MAE  " + "  ".join(f"{n} {v:.2f}" for n, v in zip(pn, fe["pf"]["mae"])) + "  (deg, mm)")
+    for w in o.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    for k, f in o.files.items():
+        print(f"{k:15s} {f}")
+    if "recording" in o.files:
+        print(f"open the recording with: rerun {o.files['recording']}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="knee", description="Knee kinematics toolkit (mm, degrees at the CLI).")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -167,6 +224,21 @@ def build_parser() -> argparse.ArgumentParser:
     dp = sub.add_parser("demo", help="the main job on the bundled default knee, with a Rerun recording")
     dp.add_argument("--out", default="knee-demo", help="output folder (a new one if it exists)")
     dp.set_defaults(func=cmd_demo)
+    ss = sub.add_parser("synth-subject", help="write a synthetic subject folder from a parameter set")
+    ss.add_argument("out_dir", help="folder to create (must not exist or be empty)")
+    ss.add_argument("--model", default="volunteer", help="parameter set with a patella (volunteer)")
+    ss.add_argument("--seed", type=int, default=0, help="random seed (0)")
+    ss.add_argument("--frames", type=int, default=60, help="frames of the measured motion, 0-120 deg (60)")
+    ss.set_defaults(func=cmd_synth_subject)
+    fp = sub.add_parser("fit", help="fit a subject-specific mechanism to a subject folder")
+    fp.add_argument("subject_dir", help="the subject folder (README, 'Subject folders'); never written to")
+    fp.add_argument("--out", required=True, help="output folder (parameter files, report, figure, recording)")
+    fp.add_argument("--seed", type=int, default=0, help="seed of the global stage (0); same seed, same result")
+    fp.add_argument("--no-global", action="store_true", help="skip differential evolution (local stage only)")
+    fp.add_argument("--no-recording", action="store_true", help="do not write the Rerun recording")
+    fp.add_argument("--force", action="store_true", help="write into a non-empty output folder")
+    fp.add_argument("--quiet", action="store_true", help="no progress bar")
+    fp.set_defaults(func=cmd_fit)
     return ap
 
 

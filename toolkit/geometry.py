@@ -40,6 +40,9 @@ def fit_sphere(points, refine: bool = True, iterations: int = 20):
     centre : (3,) float, radius : float, rms : float (geometric residual, mm)
     """
     p = _points(points, 4, "sphere fit")
+    sv = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)
+    if sv[2] < 1e-3 * sv[0]:
+        raise KneeInputError(f"sphere fit: the {len(p)} points are (nearly) coplanar; a sphere needs a curved patch")
     A = np.column_stack([2 * p, np.ones(len(p))])
     sol, *_ = np.linalg.lstsq(A, (p * p).sum(axis=1), rcond=None)
     c = sol[:3]

@@ -615,3 +615,74 @@ def quick_tf_sweep(params_vector, kinds, x_start, alphas, compile: bool | None =
     tf = np.column_stack([states[:, 6], states[:, :5]])
     cond = condition_numbers(diags[:, 6:31].reshape(n, 5, 5).transpose(0, 2, 1)) if ok else np.full(n, np.inf)
     return tf, res, ok, cond
+
+
+_PF_SCAN: dict = {}
+
+
+def quick_pf_sweep(params_vector, kinds, x_ref_guess, psi_ref_guess, alphas, compile: bool | None = None,
+                   max_step: float = math.radians(2.0)):
+    """TF and PF motion of a parameter vector with a patella, without building a :class:`Mechanism`
+    (for the PF fit, whose candidates stay close to a known assembly).
+
+    The TF closure is solved at the reference flexion from ``x_ref_guess`` (5,), the PF reference angle by
+    Newton on the tendon equation from ``psi_ref_guess``; continuation then runs from the reference flexion
+    to ``alphas[0]`` in steps of at most ``max_step`` and on along ``alphas`` (rad, (n,)).
+
+    Returns
+    -------
+    dict with ``tf`` (n, 6), ``pf`` (n, 6), ``ok`` (bool), ``Z`` (n, 12): the states
+    ``(x, psi, x_ref, psi_ref)`` for :func:`pf_sensitivities`, and ``x_ref``, ``psi_ref``.
+    """
+    p = np.asarray(params_vector, dtype=float)
+    al = np.asarray(alphas, dtype=float)
+    n = al.size
+    fail = {"tf": np.full((n, 6), np.nan), "pf": np.full((n, 6), np.nan), "ok": False, "Z": None,
+            "x_ref": None, "psi_ref": None}
+    a_ref = float(p[closure.PF0 + 21])
+    b = compiled.backend(tuple(kinds), True, compile)
+    f = b.tf_newton
+    f.owner = None
+    f.inputs[0][:] = x_ref_guess
+    f.inputs[1][0] = a_ref
+    f.inputs[2][:] = p
+    f.call()
+    x_ref = f.outputs[0].copy()
+    if not np.all(np.abs(f.outputs[1]) < RESIDUAL_TOL):
+        return fail
+    if "fn" not in _PF_SCAN:
+        _PF_SCAN["fn"] = closure.build_pf_scan()
+    fn = _PF_SCAN["fn"]
+    psi = float(psi_ref_guess)
+    for _ in range(30):
+        r, dr = (float(v) for v in fn(psi, x_ref, a_ref, p))
+        if dr == 0 or not math.isfinite(r):
+            return fail
+        step = r / dr
+        psi -= max(-0.3, min(0.3, step))
+        if abs(step) < 1e-13:
+            break
+    if not abs(float(fn(psi, x_ref, a_ref, p)[0])) < RESIDUAL_TOL:
+        return fail
+    k = max(1, int(math.ceil(abs(al[0] - a_ref) / max_step)))
+    lead = np.linspace(a_ref, al[0], k + 1)[1:-1]
+    path = np.r_[lead, al]
+    sw = b.sweep
+    sw.owner = None
+    sw.inputs[2][:] = p
+    sw.inputs[3][0] = psi
+    states, diags = _run_chunks(sw, _fresh(x_ref, psi, a_ref), path)
+    states, diags = states[lead.size:], diags[lead.size:]
+    res = np.abs(diags[:, :6]).max(axis=1)
+    x = states[:, :5]
+    jump = detect_jumps(x[0], al[0], x, al)
+    ok = bool(np.all(res < RESIDUAL_TOL) and not jump.any() and np.all(np.isfinite(diags[:, 31:37])))
+    Z = np.column_stack([states[:, :6], np.tile(np.r_[x_ref, psi], (n, 1))])
+    return {"tf": np.column_stack([al, x]), "pf": diags[:, 31:37].copy(), "ok": ok, "Z": Z, "x_ref": x_ref,
+            "psi_ref": psi}
+
+
+def pf_sensitivities(params_vector, kinds, Z, alphas) -> Sensitivity:
+    """Derivatives of the 12 joint coordinates at states ``Z`` from :func:`quick_pf_sweep`."""
+    return _sensitivities(kinds, True, np.asarray(Z, float), np.asarray(alphas, float).copy(),
+                          np.asarray(params_vector, float))

@@ -1,0 +1,197 @@
+"""The subject folder: what a lab hands the fitting pipeline (README, "Subject folders").
+
+::
+
+    SUBJECT/
+      subject.toml                  name, side, options (below)
+      ct/femur.stl tibia.stl patella.stl     CT bone surfaces (STL/PLY/OBJ, mm; SPACE=LPS|RAS comment)
+      ct/landmarks.mrk.json         anatomical landmarks (fitting.frames) and the alignment fiducials
+      ct/areas/femur_intercondylar.mrk.json  points of the intercondylar space (helical pitch)
+      mri/femur.* tibia.* [patella.*]        MRI surfaces with cartilage
+      mri/landmarks.mrk.json        the alignment fiducials (fitting.frames.FIDUCIALS) in MRI space
+      mri/areas/<name>.mrk.json     point lists: attachment areas acl_femur, acl_tibia, pcl_femur,
+                                    pcl_tibia, mcl_femur, mcl_tibia, tendon_tibia, tendon_patella; articular
+                                    regions femur_lateral_condyle, femur_medial_condyle (posterior),
+                                    tibia_lateral_facet, tibia_medial_facet, femur_lateral_trochlea,
+                                    femur_medial_trochlea (anterior condyles)
+      mri/labels/<bone>.json        optional instead of point lists: {"<name>": [vertex indices into
+                                    mri/<bone>.*], ...}
+      motion.csv                    measured TF (and PF) motion (toolkit.imaging.read_motion_csv)
+      truth.toml                    optional (synthetic subjects): the generating parameter set
+
+``subject.toml``::
+
+    format = "knee-subject"
+    version = 1
+    name = "S01"
+    side = "right"                  # or "left": mirrored into a right knee on the way in
+    [pf]
+    reference_flexion_deg = 55.0    # default: the middle of the measured flexion range
+    project_tendon = true           # project the tendon-area centroids onto the CT surfaces
+    [bundles]
+    acl = "am"                      # restrict a ligament's search to the points with this label
+
+Without a patella surface, patellar fiducials, tendon areas or PF motion the subject is TF-only.
+All geometry is returned in LPS (mm) of its scan; a left knee is mirrored (LPS x negated).
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from fitting.frames import FIDUCIALS, LANDMARKS
+from toolkit.errors import KneeInputError
+from toolkit.imaging import Markups, MotionFile, find_surface, read_markups, read_motion_csv, read_surface
+
+FORMAT_NAME = "knee-subject"
+LIGAMENTS = ("acl", "pcl", "mcl")
+CONTACT_REGIONS = ("femur_lateral_condyle", "femur_medial_condyle", "tibia_lateral_facet", "tibia_medial_facet")
+TROCHLEA_REGIONS = ("femur_lateral_trochlea", "femur_medial_trochlea")
+TENDON_AREAS = ("tendon_tibia", "tendon_patella")
+
+
+@dataclass
+class Area:
+    """Named points (LPS of their scan) with a label per point."""
+
+    name: str
+    points: np.ndarray
+    labels: list[str]
+    source: str
+
+
+@dataclass
+class Subject:
+    root: Path
+    name: str
+    side: str
+    ct: dict[str, trimesh.Trimesh]
+    ct_landmarks: Markups
+    mri: dict[str, trimesh.Trimesh]
+    mri_landmarks: Markups
+    motion: MotionFile
+    has_pf: bool
+    reference_flexion_deg: float | None = None
+    project_tendon: bool = True
+    bundles: dict[str, str] = field(default_factory=dict)
+    truth: Path | None = None
+    _areas: dict = field(default_factory=dict)
+
+    def area(self, name: str, space: str = "mri") -> Area:
+        """A named point set (attachment area or region) of the MRI (or CT) folder; error naming it."""
+        key = (space, name)
+        if key not in self._areas:
+            self._areas[key] = self._load_area(name, space)
+        return self._areas[key]
+
+    def _load_area(self, name, space) -> Area:
+        folder = self.root / space
+        f = folder / "areas" / f"{name}.mrk.json"
+        if f.is_file():
+            mk = read_markups(f)
+            if len(mk.points) == 0:
+                raise KneeInputError(f"{f}: no defined points in the area {name}")
+            return Area(name, self._mirror(mk.points), mk.labels, str(f))
+        bone = name.split("_")[-1] if name.startswith(("acl", "pcl", "mcl", "tendon")) else name.split("_")[0]
+        lab = folder / "labels" / f"{bone}.json"
+        if lab.is_file():
+            try:
+                idx = json.loads(lab.read_text(encoding="utf-8")).get(name)
+            except (json.JSONDecodeError, AttributeError) as e:
+                raise KneeInputError(f"{lab}: not a JSON object of vertex-index lists ({e})") from None
+            if idx is not None:
+                surf = (self.mri if space == "mri" else self.ct).get(bone)
+                if surf is None:
+                    raise KneeInputError(f"{lab}: labels given but there is no {space} {bone} surface")
+                idx = np.asarray(idx, dtype=int)
+                if idx.size == 0 or idx.min() < 0 or idx.max() >= len(surf.vertices):
+                    raise KneeInputError(f"{lab}: {name} has vertex indices outside 0..{len(surf.vertices) - 1}")
+                return Area(name, surf.vertices[idx], [name] * idx.size, f"{lab}:{name}")
+        raise KneeInputError(f"missing area {name}: expected {f} (or an entry in {lab})")
+
+    def _mirror(self, p):
+        p = np.array(p, dtype=float, copy=True)
+        if self.side == "left":
+            p[..., 0] *= -1.0
+        return p
+
+
+def _mirror_mesh(m: trimesh.Trimesh) -> trimesh.Trimesh:
+    m = m.copy()
+    m.vertices = m.vertices * np.array([-1.0, 1.0, 1.0])
+    m.invert()  # a reflection flips the winding; restore outward normals
+    return m
+
+
+def _read_options(root: Path) -> dict:
+    f = root / "subject.toml"
+    if not f.is_file():
+        raise KneeInputError(f"{root} is not a subject folder: {f} not found")
+    try:
+        d = tomllib.loads(f.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise KneeInputError(f"{f}: not valid TOML ({e})") from None
+    if d.get("format") != FORMAT_NAME:
+        raise KneeInputError(f"{f}: field 'format' must be \"{FORMAT_NAME}\", got {d.get('format')!r}")
+    if d.get("version") != 1:
+        raise KneeInputError(f"{f}: field 'version' must be 1, got {d.get('version')!r}")
+    side = d.get("side", "right")
+    if side not in ("right", "left"):
+        raise KneeInputError(f"{f}: side must be \"right\" or \"left\", got {side!r}")
+    d["side"] = side
+    return d
+
+
+def load_subject(root) -> Subject:
+    """Read and check a subject folder (see the module docstring). Nothing in it is written."""
+    root = Path(root)
+    if not root.is_dir():
+        raise KneeInputError(f"subject folder {root} not found")
+    opt = _read_options(root)
+    side = opt["side"]
+    ct_lm = read_markups(root / "ct" / "landmarks.mrk.json")
+    mri_lm = read_markups(root / "mri" / "landmarks.mrk.json")
+    if side == "left":
+        for mk in (ct_lm, mri_lm):
+            mk.points = mk.points * np.array([-1.0, 1.0, 1.0])
+    ct, mri = {}, {}
+    for bone in ("femur", "tibia"):
+        ct[bone] = read_surface(find_surface(root / "ct", bone))
+        mri[bone] = read_surface(find_surface(root / "mri", bone))
+    for bone, folder, store in (("patella", "ct", ct), ("patella", "mri", mri)):
+        try:
+            store[bone] = read_surface(find_surface(root / folder, bone))
+        except KneeInputError as e:
+            if "missing surface" not in str(e):
+                raise
+    if side == "left":
+        ct = {k: _mirror_mesh(v) for k, v in ct.items()}
+        mri = {k: _mirror_mesh(v) for k, v in mri.items()}
+    for bone in ("femur", "tibia"):
+        ct_lm.require(LANDMARKS[bone])
+        mri_lm.require(FIDUCIALS[bone])
+    motion = read_motion_csv(root / "motion.csv", side)
+    pf_opt = opt.get("pf", {}) or {}
+    has_pf = ("patella" in ct and motion.pf is not None
+              and all(k in ct_lm.labels for k in LANDMARKS["patella"])
+              and all(k in mri_lm.labels for k in FIDUCIALS["patella"]))
+    ref = pf_opt.get("reference_flexion_deg")
+    if ref is not None and not isinstance(ref, (int, float)):
+        raise KneeInputError(f"{root / 'subject.toml'}: [pf] reference_flexion_deg must be a number")
+    bundles = opt.get("bundles", {}) or {}
+    for k, v in bundles.items():
+        if k not in LIGAMENTS or not isinstance(v, str):
+            raise KneeInputError(f"{root / 'subject.toml'}: [bundles] entries must be one of {', '.join(LIGAMENTS)} "
+                                 f"= \"<label>\", got {k} = {v!r}")
+    truth = root / "truth.toml"
+    return Subject(root=root, name=str(opt.get("name", root.name)), side=side, ct=ct, ct_landmarks=ct_lm, mri=mri,
+                   mri_landmarks=mri_lm, motion=motion, has_pf=bool(has_pf),
+                   reference_flexion_deg=None if ref is None else float(ref),
+                   project_tendon=bool(pf_opt.get("project_tendon", True)), bundles=dict(bundles),
+                   truth=truth if truth.is_file() else None)
