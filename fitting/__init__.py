@@ -1,9 +1,13 @@
 """From imaging to mechanism parameters (seed 002, sections 2.1-2.4).
 
-Built so far: :mod:`.optimize`, the bounded optimisation of the TF group against a measured motion
-(differential evolution, then multi-start Gauss-Newton with exact CasADi sensitivities) and synthetic
-motions with fluoroscopy-like noise; :mod:`.isometric`, the isometric-fibre search. The geometric
-building blocks (sphere and plane fits, fiducial registration with FRE, principal axes) are in
-:mod:`toolkit.geometry`. Still to come: the subject folder, anatomical frames, the pipeline steps
-wired together, the PF fit, reports and the ``knee fit`` and ``knee synth-subject`` commands.
+- :mod:`.subject`: the subject folder (surfaces, Slicer markups, attachment areas, measured motion).
+- :mod:`.frames`: anatomical frames from landmarks, with left/right checks.
+- :mod:`.pipeline`: the steps (frames, MRI-CT alignment, sphere fits, helical axis and pitch, isometric
+  fibres, first estimate, fits, validation, report, figure, recording) and :func:`.pipeline.run_fit`.
+- :mod:`.optimize` and :mod:`.pf`: the bounded TF and PF optimisations (differential evolution, then
+  Gauss-Newton with exact CasADi sensitivities); :mod:`.isometric`: the isometric-fibre search.
+- :mod:`.synthetic`: a synthetic subject folder from a parameter set (``knee synth-subject``).
+
+The geometric building blocks (sphere and plane fits, fiducial registration, principal axes) are in
+:mod:`toolkit.geometry`; the file formats in :mod:`toolkit.imaging`.
 """

@@ -314,12 +314,21 @@ def _check_out(subject_dir: Path, out_dir: Path, force: bool) -> None:
 OUTPUT_FILES = ("first_estimate.toml", "fitted.toml", "report.json", "report.md", "motion.png", "fit.rrd")
 
 
+#: Global-stage effort (differential evolution population factor and generations) per setting.
+EFFORT = {"full": {"tf": (12, 15), "pf": (10, 12)}, "quick": {"tf": (5, 4), "pf": (5, 3)}}
+
+
 def run_fit(subject_dir, out_dir, seed: int = 0, global_stage: bool = True, progress=None, force: bool = False,
-            recording: bool = True, figure: bool = True) -> FitOutcome:
+            recording: bool = True, figure: bool = True, effort: str = "full") -> FitOutcome:
     """Run every step on a subject folder and write the outputs (see the module docstring).
 
     ``progress(fraction, text)`` is called as the work advances (fraction of the whole fit, 0..1).
+    ``effort``: ``"full"`` (the defaults of :func:`fit_tf`/:func:`fit_pf`) or ``"quick"`` (a small global
+    stage, for trying a folder out). Without the global stage the local stage starts from the first
+    estimate alone, which must then assemble over the measured range.
     """
+    if effort not in EFFORT:
+        raise KneeInputError(f"effort must be one of {', '.join(EFFORT)}, got {effort!r}")
     subject_dir, out_dir = Path(subject_dir), Path(out_dir)
     _check_out(subject_dir, out_dir, force)
     say = progress or (lambda f, t: None)
@@ -347,7 +356,11 @@ def run_fit(subject_dir, out_dir, seed: int = 0, global_stage: bool = True, prog
         return lambda f, t: say(lo + (hi - lo) * f, t)
 
     t0 = time.perf_counter()
-    tf_fit = fit_tf(first, motion, seed=seed, global_stage=global_stage,
+    if not global_stage and first_err is None:
+        raise KneeInputError("the first estimate does not assemble over the measured range, so the local stage "
+                             "alone cannot start; run with the global stage")
+    pop, gens = EFFORT[effort]["tf"]
+    tf_fit = fit_tf(first, motion, seed=seed, global_stage=global_stage, popsize=pop, maxiter=gens,
                     progress=part(0.05, 0.5 if subject.has_pf else 0.95), weights=noise_weights())
     t_tf = time.perf_counter() - t0
     from dataclasses import replace
@@ -359,7 +372,9 @@ def run_fit(subject_dir, out_dir, seed: int = 0, global_stage: bool = True, prog
     t_pf = 0.0
     if subject.has_pf:
         t0 = time.perf_counter()
-        pf_res = fit_pf(fitted, motion, seed=seed, global_stage=global_stage, progress=part(0.5, 0.95))
+        pop, gens = EFFORT[effort]["pf"]
+        pf_res = fit_pf(fitted, motion, seed=seed, global_stage=global_stage, popsize=pop, maxiter=gens,
+                        progress=part(0.5, 0.95))
         fitted = pf_res.params
         t_pf = time.perf_counter() - t0
     fitted = replace(fitted, name=f"{subject.name}-fitted",

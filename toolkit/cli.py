@@ -4,7 +4,7 @@
     knee sweep MODEL [--from 0] [--to 120] [--step 1] [--out motion.csv] [--rrd sweep.rrd] [--force]
     knee demo [--out DIR]
     knee synth-subject OUT_DIR [--model volunteer] [--seed N] [--frames 60]
-    knee fit SUBJECT_DIR --out OUT_DIR [--seed N] [--no-global] [--no-recording] [--force]
+    knee fit SUBJECT_DIR --out OUT_DIR [--seed N] [--quick] [--no-global] [--no-recording] [--force]
 
 Angles in degrees, lengths in mm. Bad input gives a one-line ``knee: error: ...`` and exit code 2; no
 existing file is overwritten unless ``--force`` is given.
@@ -190,7 +190,7 @@ def cmd_fit(args) -> int:
 
     bar = ProgressBar() if not args.quiet else None
     o = run_fit(args.subject_dir, args.out, seed=args.seed, global_stage=not args.no_global, progress=bar,
-                force=args.force, recording=not args.no_recording)
+                force=args.force, recording=not args.no_recording, effort="quick" if args.quick else "full")
     fe = o.fitted_errors
     print(f"subject {o.subject.name}: fitted on {len(o.motion.tf)} frames in {o.seconds['fit']:.1f} s "
           f"(total {o.seconds['total']:.1f} s)")
@@ -235,6 +235,7 @@ def build_parser() -> argparse.ArgumentParser:
     fp.add_argument("--out", required=True, help="output folder (parameter files, report, figure, recording)")
     fp.add_argument("--seed", type=int, default=0, help="seed of the global stage (0); same seed, same result")
     fp.add_argument("--no-global", action="store_true", help="skip differential evolution (local stage only)")
+    fp.add_argument("--quick", action="store_true", help="a small global stage (a first look; not for results)")
     fp.add_argument("--no-recording", action="store_true", help="do not write the Rerun recording")
     fp.add_argument("--force", action="store_true", help="write into a non-empty output folder")
     fp.add_argument("--quiet", action="store_true", help="no progress bar")
