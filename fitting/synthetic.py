@@ -9,8 +9,8 @@ known truth:
   alignment landmarks; the intercondylar-space region (``ct/areas/femur_intercondylar.mrk.json``).
 * ``mri/``: the same bones with cartilage (the contact spheres), posed at 10 deg flexion in a second
   scanner space, written in RAS (PLY, ``SPACE=RAS``); the alignment fiducials with 0.3 mm
-  identification noise (RAS markups); the ligament and patellar-tendon attachment areas and the
-  articular regions for the sphere fits (LPS markups point lists).
+  identification noise; the ligament and patellar-tendon attachment areas and the
+  articular regions for the sphere fits (markups point lists). All markups are written in LPS.
 * ``motion.csv``: the measured TF and PF motion, 0 to 120 deg, with fluoroscopy-like noise
   (:data:`fitting.optimize.NOISE_SD`).
 * ``truth.toml``: the generating parameter set (only synthetic subjects have it; the fit report then
@@ -132,7 +132,7 @@ def make_subject(out_dir, model: str = "volunteer", seed: int = 0, frames: int =
             p = transform_points(T_mri[bone], lm[bone][key][None])[0]
             mri_points.append(p + rng.normal(scale=FIDUCIAL_NOISE_MM, size=3))
     write_markups(out / "ct/landmarks.mrk.json", ct_labels, ct_points, "LPS")
-    write_markups(out / "mri/landmarks.mrk.json", mri_labels, mri_points, "RAS")
+    write_markups(out / "mri/landmarks.mrk.json", mri_labels, mri_points, "LPS")
 
     # ---- surfaces
     for bone in ("femur", "tibia", "patella"):

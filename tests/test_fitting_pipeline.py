@@ -259,6 +259,27 @@ def test_missing_and_degenerate_inputs_name_what_is_wrong(subject_dir, tmp_path)
         load_subject(d)
 
 
+def test_areas_as_per_vertex_labels_give_the_same_fit(subject_dir, tmp_path):
+    """A region given as vertex indices into the MRI surface (mri/labels/<bone>.json) instead of a point list."""
+    d = _copy(subject_dir, tmp_path)
+    s = load_subject(d)
+    region = s.area("femur_lateral_condyle").points
+    verts = s.mri["femur"].vertices
+    idx = [int(np.argmin(np.linalg.norm(verts - p, axis=1))) for p in region]
+    (d / "mri/labels").mkdir()
+    (d / "mri/labels/femur.json").write_text(json.dumps({"femur_lateral_condyle": idx}))
+    (d / "mri/areas/femur_lateral_condyle.mrk.json").unlink()
+    s2 = load_subject(d)
+    geo = Geometry(anatomical_frames(s2), align_mri(s2))
+    c1 = contact_spheres(s, Geometry(anatomical_frames(s), align_mri(s)))["lateral"]["femur"]
+    c2 = contact_spheres(s2, geo)["lateral"]["femur"]
+    assert s2.area("femur_lateral_condyle").source.endswith(":femur_lateral_condyle")
+    np.testing.assert_allclose(c2["centre"], c1["centre"], atol=1e-4)
+    (d / "mri/labels/femur.json").write_text(json.dumps({"femur_lateral_condyle": [0, 1, 10 ** 7]}))
+    with pytest.raises(KneeInputError, match="vertex indices outside"):
+        load_subject(d).area("femur_lateral_condyle")
+
+
 def test_nan_rows_are_skipped_and_counted_in_the_report(subject_dir, tmp_path):
     d = _copy(subject_dir, tmp_path)
     lines = (d / "motion.csv").read_text().splitlines()
