@@ -25,7 +25,7 @@ import numpy as np
 from scipy.optimize import differential_evolution, least_squares
 
 from models.mechanism.params import LINK_SIZE, MechanismParams
-from models.mechanism.solver import Mechanism, quick_tf_sweep, tf_sensitivities
+from models.mechanism.solver import Mechanism, dense_grid, quick_tf_sweep, tf_sensitivities
 from toolkit.errors import KneeInputError
 
 REJECTED = 1e3  # residual (deg or mm) given to every component of a rejected candidate
@@ -87,22 +87,6 @@ def perturb_endpoints(params: MechanismParams, low: float = 0.5, high: float = 2
             d = rng.normal(size=3)
             v[LINK_SIZE * i + part:LINK_SIZE * i + part + 3] += d * rng.uniform(low, high) / np.linalg.norm(d)
     return params.with_vector(v)
-
-
-def dense_grid(flexion, max_gap: float = np.radians(1.0)):
-    """The measured flexion angles sorted, with angles added so that no gap exceeds ``max_gap`` (rad):
-    candidates are swept along it, so a geometry that stops assembling (or crosses a singularity)
-    between two measured frames is caught. Returns ``(grid (m,), index (n,))`` with
-    ``grid[index] == flexion``."""
-    a = np.asarray(flexion, float)
-    u = np.unique(a)
-    fill = [u[:1]]
-    for lo, hi in zip(u[:-1], u[1:]):
-        k = int(np.ceil((hi - lo) / max_gap))
-        fill.append(np.linspace(lo, hi, k + 1)[1:])
-    grid = np.concatenate(fill)
-    idx = np.searchsorted(grid, a)
-    return grid, idx
 
 
 def _ball(w, radius):

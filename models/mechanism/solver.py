@@ -74,6 +74,38 @@ def detect_jumps(x0, a0, x, alpha) -> np.ndarray:
     return jump
 
 
+#: Largest step (rad) the continuation takes between two angles; larger requested steps are subdivided.
+MAX_STEP = math.radians(2.0)
+
+
+def _subdivide(al, max_step):
+    """The path through angles ``al`` with no step above ``max_step``, and the positions of ``al`` in it."""
+    if al.size < 2:
+        return al, np.arange(al.size)
+    k = np.maximum(np.ceil(np.abs(np.diff(al)) / max_step).astype(int), 1)
+    if np.all(k == 1):
+        return al, np.arange(al.size)
+    keep = np.r_[0, np.cumsum(k)]
+    t = np.concatenate([np.arange(1, kk + 1) / kk for kk in k])
+    start = np.repeat(al[:-1], k)
+    step = np.repeat(np.diff(al), k)
+    return np.r_[al[0], start + t * step], keep
+
+
+def dense_grid(flexion, max_gap: float = math.radians(1.0)):
+    """The angles sorted, with angles added so that no gap exceeds ``max_gap`` (rad): continuation along
+    it cannot step over a fold or onto another branch between two requested angles. Returns
+    ``(grid (m,), index (n,))`` with ``grid[index] == flexion``."""
+    a = np.asarray(flexion, float)
+    u = np.unique(a)
+    fill = [u[:1]]
+    for lo, hi in zip(u[:-1], u[1:]):
+        k = int(np.ceil((hi - lo) / max_gap))
+        fill.append(np.linspace(lo, hi, k + 1)[1:])
+    grid = np.concatenate(fill)
+    return grid, np.searchsorted(grid, a)
+
+
 def _run_chunks(sw, state, al):
     """Run the compiled chunked sweep ``sw`` (inputs already holding p and psi_ref) along angles ``al``
     from ``state``; returns (states (n, N_STATE), diags (n, N_DIAG))."""
@@ -464,12 +496,27 @@ class Mechanism:
         close (residual above ``RESIDUAL_TOL``) or that jumps to another branch, and reports where the
         branch stops assembling; rows before the stop are returned.
 
+        Steps larger than :data:`MAX_STEP` between consecutive angles are subdivided internally (only
+        the requested angles are returned): a large step could otherwise converge onto another branch
+        without any sign in the residual.
+
         Parameters
         ----------
         flexion : (m,) float
-            Angles in rad, in the order to visit (usually monotonic, steps of a few degrees at most).
+            Angles in rad, in the order to visit.
         """
-        al = np.asarray(flexion, dtype=float).ravel()
+        req = np.asarray(flexion, dtype=float).ravel()
+        if req.size and np.all(np.isfinite(req)):
+            path, keep = _subdivide(req, MAX_STEP)
+            if path.size != req.size:
+                full = self.sweep(path)
+                solved = int(np.searchsorted(keep, full.flexion.size))  # requested rows before any stop
+                rows = keep[:solved]
+                return SweepResult(requested=req, flexion=full.flexion[rows], tf=full.tf[rows], pf=full.pf[rows],
+                                   residual=full.residual[rows], jacobian=full.jacobian[rows], psi=full.psi[rows],
+                                   status=full.status, message=full.message, limit=full.limit,
+                                   _states=None if full._states is None else full._states[rows])
+        al = req
         if al.size == 0:
             raise KneeInputError("sweep needs at least one flexion angle")
         if not np.all(np.isfinite(al)):
@@ -560,6 +607,19 @@ class Mechanism:
             on = self.solve(flexion)[0][1:]
             modes.sort(key=lambda m: float(np.abs(m - on).max() > 1e-6))
         return modes
+
+    def motion_at(self, flexion, max_step: float = math.radians(1.0)):
+        """TF and PF joint coordinates ``(tf (n, 6), pf (n, 6))`` at angles in any order or spacing (rad):
+        swept along :func:`dense_grid`, so far-apart or unordered angles (gait frames, coarse tables) stay on
+        the branch. Raises :class:`AssemblyError` when an angle is outside the assembly range."""
+        al = np.atleast_1d(np.asarray(flexion, dtype=float))
+        if al.size == 0 or not np.all(np.isfinite(al)):
+            raise KneeInputError("flexion angles must be finite and at least one")
+        grid, idx = dense_grid(al, max_step)
+        sw = self.sweep(grid)
+        if not sw.complete:
+            raise AssemblyError(f"{self.params.name}: {sw.message}")
+        return sw.tf[idx], sw.pf[idx]
 
     def sensitivities(self, flexion) -> Sensitivity:
         """Derivatives of the joint coordinates with respect to flexion and to every parameter.

@@ -1,0 +1,120 @@
+"""Statics of the mechanism (virtual work), Hertz contact (closed form) and the elastic foundation."""
+
+import math
+
+import numpy as np
+import pytest
+
+from models.contact import (CARTILAGE, Cartilage, condyle_cap, effective_modulus, effective_radius, foundation,
+                            foundation_closed_form_approach, foundation_force, hertz)
+from models.mechanism import Mechanism
+from models.statics import member_lines, solve_statics
+from toolkit.conventions import joint_to_pose
+from toolkit.errors import KneeInputError
+
+
+def test_large_sweep_steps_stay_on_the_branch(volunteer):
+    """A 10-degree step used to converge onto another branch silently; steps are now subdivided."""
+    a = volunteer.sweep(np.radians(np.arange(0, 121, 10.0)))
+    b = volunteer.sweep(np.radians(np.arange(0, 121, 1.0)))
+    assert a.complete
+    np.testing.assert_allclose(a.tf, b.tf[::10], atol=1e-9)
+
+
+def _tibia_twist(mech, a, h=1e-6):
+    """Spatial twist (omega, velocity of the point at the femur origin) of the tibia per unit flexion."""
+    tf, pf = mech.motion_at(np.array([a - h, a, a + h]))
+    T = joint_to_pose(tf)
+    dT = (T[2] - T[0]) / (2 * h)
+    W = dT[:3, :3] @ T[1, :3, :3].T
+    w = np.array([W[2, 1], W[0, 2], W[1, 0]])
+    return w, dT[:3, 3] - np.cross(w, T[1, :3, 3]), tf[1], pf[1], T[1]
+
+
+@pytest.mark.parametrize("deg", [10.0, 45.0, 90.0])
+def test_statics_satisfies_virtual_work(volunteer, deg):
+    """Independent check: along the mechanism's own motion the five links do no work (constant length), so
+    the tendon force must equal minus the load's power divided by the tendon's unit power."""
+    a = math.radians(deg)
+    F = np.array([35.0, 650.0, -40.0])
+    M = np.array([2000.0, -1500.0, 5000.0])
+    st = solve_statics(volunteer, a, F, M)
+    w, v0, tf, pf, T = _tibia_twist(volunteer, a)
+    u, b = member_lines(volunteer.params, tf[None], pf[None])
+    unit_power = np.einsum("ij,ij->i", u[0], v0 + np.cross(w, b[0]))
+    assert np.abs(unit_power[:5]).max() < 1e-6 * np.abs(unit_power[5])  # links: no work
+    R, P = T[:3, :3], T[:3, 3]
+    Fw, Mw = R @ F, R @ M + np.cross(P, R @ F)
+    tendon = -(Fw @ v0 + Mw @ w) / unit_power[5]
+    assert st.force("tendon")[0] == pytest.approx(tendon, rel=1e-6)
+    # and the full equilibrium: sum of member wrenches + load = 0
+    f = st.forces[0]
+    net_f = (f[:, None] * st.directions[0]).sum(axis=0) + Fw
+    net_m = (f[:, None] * np.cross(st.points[0], st.directions[0])).sum(axis=0) + Mw
+    assert np.abs(net_f).max() < 1e-8 * np.linalg.norm(F) and np.abs(net_m).max() < 1e-6 * np.linalg.norm(Mw)
+
+
+def test_statics_flags_members_that_cannot_carry_the_load(volunteer):
+    st = solve_statics(volunteer, np.radians([0.0, 60.0]), [0.0, 700.0, 0.0])
+    # a compressive load along the tibial axis: both condyles in compression at 60 deg
+    assert st.force("lc")[1] < 0 and st.force("mc")[1] < 0
+    flat = [x for f in st.flags for x in f]
+    assert any("would have to push" in x for x in flat)
+    pulled = solve_statics(volunteer, math.radians(20.0), [0.0, -700.0, 0.0])  # a distracting load
+    assert any("would have to pull" in x for x in pulled.flags[0])
+    with pytest.raises(KneeInputError, match="patella"):
+        solve_statics(Mechanism.from_name("generic-sancisi2017"), 0.3, [0, 1, 0])
+    with pytest.raises(KneeInputError):
+        solve_statics(volunteer, math.radians(170.0), [0, 1, 0])
+
+
+def test_hertz_equals_the_closed_form():
+    """Johnson (1985) 4.2, computed here independently from the definitions."""
+    E, nu = 8.0, 0.4
+    c = Cartilage(E=E, nu=nu)
+    for surface, rt in (("convex", 55.0), ("concave", 60.0), ("plane", None)):
+        F = np.array([0.0, 10.0, 250.0, 1800.0])
+        r = hertz(F, 24.0, rt, surface, c, c)
+        inv = 1 / 24.0 + (0 if surface == "plane" else (1 / rt if surface == "convex" else -1 / rt))
+        Rs = 1 / inv
+        Es = E / (2 * (1 - nu ** 2))
+        a = (3 * F * Rs / (4 * Es)) ** (1 / 3)
+        np.testing.assert_allclose(r.radius, a, rtol=1e-12)
+        np.testing.assert_allclose(r.area, np.pi * a ** 2, rtol=1e-12)
+        np.testing.assert_allclose(r.peak[1:], 3 * F[1:] / (2 * np.pi * a[1:] ** 2), rtol=1e-9)
+        np.testing.assert_allclose(r.mean[1:], F[1:] / (np.pi * a[1:] ** 2), rtol=1e-9)
+        np.testing.assert_allclose(r.approach, a ** 2 / Rs, rtol=1e-12)
+        # p0 = (6 F E*^2 / (pi^3 R*^2))^(1/3), the other textbook form
+        np.testing.assert_allclose(r.peak[1:], (6 * F[1:] * Es ** 2 / (np.pi ** 3 * Rs ** 2)) ** (1 / 3), rtol=1e-9)
+        assert r.area[0] == 0 and r.peak[0] == 0
+    with pytest.raises(KneeInputError, match="concave"):
+        effective_radius(24.0, 20.0, "concave")
+    with pytest.raises(KneeInputError):
+        Cartilage(nu=0.5)
+
+
+@pytest.mark.parametrize("surface,rt", [("convex", 55.0), ("concave", 55.0), ("plane", None)])
+def test_elastic_foundation_balances_the_load(surface, rt):
+    F = 600.0
+    cap = condyle_cap(24.0)
+    r = foundation(F, 24.0, rt, surface, cap)
+    assert r.net_force[2] == pytest.approx(F, rel=1e-8)
+    assert np.hypot(*r.net_force[:2]) < 1e-6 * F  # the symmetric cap: no shear
+    assert r.peak > r.mean > 0 and 0 < r.area < cap.area
+    # independent: at the paraboloid closed-form approach, F = pi K R* delta^2, the mesh carries the load
+    # within 1% while the contact is small against the radii (here 200 N)
+    small = 200.0
+    d0 = foundation_closed_form_approach(small, 24.0, rt, surface)
+    net, p = foundation_force(cap, 24.0, rt, surface, d0)
+    assert net[2] == pytest.approx(small, rel=0.01)
+    assert p.max() == pytest.approx(CARTILAGE.foundation_modulus * d0, rel=1e-2)  # p = K d at the centre (face centroids)
+
+
+def test_contact_along_flexion_is_plausible(volunteer):
+    """Hertz on the model's condyles under its statics: areas of tens to hundreds of mm^2 and pressures
+    of a few MPa for a body-weight load (the ranges reported for knee cartilage)."""
+    st = solve_statics(volunteer, np.radians([10.0, 60.0]), [0.0, 700.0, 0.0])
+    lc = volunteer.params.link("lc")
+    r = hertz(-st.force("lc"), lc.femur_radius, lc.tibia_radius, lc.tibia_surface)
+    assert np.all((r.area > 20) & (r.area < 2000)) and np.all((r.peak > 0.3) & (r.peak < 20))
+    assert effective_modulus() == pytest.approx(5.0 / (2 * (1 - 0.45 ** 2)))
