@@ -102,8 +102,9 @@ def test_elastic_foundation_balances_the_load(surface, rt):
     assert np.hypot(*r.net_force[:2]) < 1e-6 * F  # the symmetric cap: no shear
     assert r.peak > r.mean > 0 and 0 < r.area < cap.area
     # independent: at the paraboloid closed-form approach, F = pi K R* delta^2, the mesh carries the load
-    # within 1% while the contact is small against the radii (here 200 N)
-    small = 200.0
+    # within 1% while the contact is small against the radii (200 N; 50 N in the conforming concave facet,
+    # where R* = 43 mm makes the same load's contact 40% wider)
+    small = 50.0 if surface == "concave" else 200.0
     d0 = foundation_closed_form_approach(small, 24.0, rt, surface)
     net, p = foundation_force(cap, 24.0, rt, surface, d0)
     assert net[2] == pytest.approx(small, rel=0.01)
