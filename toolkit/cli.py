@@ -5,6 +5,8 @@
     knee demo [--out DIR]
     knee synth-subject OUT_DIR [--model volunteer] [--seed N] [--frames 60]
     knee fit SUBJECT_DIR --out OUT_DIR [--seed N] [--quick] [--no-global] [--no-recording] [--force]
+    knee gait MODEL [--trial CSV] [--mass 72] [--height 1.75] [--out DIR] [--rrd FILE] [--force]
+    knee contact MODEL [--load 700] [--out DIR] [--force]
 
 Angles in degrees, lengths in mm. Bad input gives a one-line ``knee: error: ...`` and exit code 2; no
 existing file is overwritten unless ``--force`` is given.
@@ -208,6 +210,99 @@ def cmd_fit(args) -> int:
     return 0
 
 
+def _out_dir(path: str, force: bool) -> Path:
+    d = Path(path)
+    if d.exists() and any(d.iterdir()) and not force:
+        raise KneeInputError(f"output folder {d} exists and is not empty; not overwritten (use --force)")
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def write_gait_table(path: Path, res) -> None:
+    """One row per frame: time, knee flexion, knee load on the tibia, member forces, contact pressures."""
+    import csv
+
+    st = res.statics
+    head = ["time_s", "knee_flexion_deg", "load_force_anterior_N", "load_force_proximal_N", "load_force_lateral_N",
+            "load_moment_anterior_Nmm", "load_moment_proximal_Nmm", "load_moment_lateral_Nmm"]
+    head += [f"{n}_force_N" for n in st.names]
+    cols = [res.trial.time, np.degrees(res.trial.knee), *res.knee_force.T, *res.knee_moment.T, *st.forces.T]
+    for name, e in res.contact.items():
+        head += [f"{name}_contact_N", f"{name}_hertz_area_mm2", f"{name}_hertz_peak_MPa"]
+        cols += [e["force"], e["hertz"].area, e["hertz"].peak]
+        if "foundation_peak" in e:
+            head += [f"{name}_foundation_area_mm2", f"{name}_foundation_peak_MPa"]
+            cols += [e["foundation_area"], e["foundation_peak"]]
+    head.append("flags")
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(head)
+        for k, row in enumerate(np.column_stack(cols)):
+            w.writerow([f"{v:.6g}" for v in row] + ["; ".join(st.flags[k])])
+
+
+def cmd_gait(args) -> int:
+    from models.clinical_views import gait_blueprint, log_gait, plot_gait
+    from models.gait import Anthropometry, analyse_gait, normative_trial, read_gait_csv
+    from models.mechanism import Mechanism
+    from toolkit import recording
+
+    out = _out_dir(args.out, args.force)
+    rrd = Path(args.rrd) if args.rrd else out / "gait.rrd"
+    _check_new(rrd, args.force)
+    anthro = Anthropometry(args.mass, args.height)
+    trial = read_gait_csv(args.trial, args.mass) if args.trial else normative_trial(args.mass)
+    mech = Mechanism.from_name(args.model)
+    res = analyse_gait(mech, trial, anthro)
+    write_gait_table(out / "gait.csv", res)
+    plot_gait(res, out / "gait.png", f"{mech.params.name}: {trial.source}")
+    rec = recording.new_recording()
+    recording.save(rec, rrd, gait_blueprint())
+    log_gait(rec, mech, res)
+    rec.flush()
+    print(f"gait of {mech.params.name} ({trial.source}), {trial.time.size} frames, {args.mass:g} kg, "
+          f"{args.height:g} m: analysed in {res.seconds:.2f} s")
+    for name, e in res.contact.items():
+        k = int(np.argmax(e["force"]))
+        print(f"contact {name}: peak force {e['force'][k]:.0f} N at t = {trial.time[k]:.3f} s; Hertz peak pressure "
+              f"{e['hertz'].peak.max():.2f} MPa, area {e['hertz'].area[k]:.0f} mm2"
+              + (f"; elastic foundation peak {e['foundation_peak'].max():.2f} MPa" if "foundation_peak" in e else ""))
+    nflag = sum(1 for f in res.statics.flags if f)
+    if nflag:
+        print(f"flagged frames: {nflag} of {trial.time.size} (a member would have to push or pull the wrong way; "
+              f"see the flags column of {out / 'gait.csv'})")
+    print(f"table: {out / 'gait.csv'}\nplot:  {out / 'gait.png'}\nrecording: {rrd}  (open with: rerun {rrd})")
+    return 0
+
+
+def cmd_contact(args) -> int:
+    from models.clinical_views import contact_vs_flexion, plot_contact
+    from models.mechanism import Mechanism
+
+    if not (args.load > 0 and math.isfinite(args.load)):
+        raise KneeInputError(f"--load must be a positive number of N, got {args.load}")
+    out = _out_dir(args.out, args.force)
+    mech = Mechanism.from_name(args.model)
+    res = contact_vs_flexion(mech, args.load)
+    plot_contact(res, out / "contact.png", f"{mech.params.name}: {args.load:g} N along the tibia")
+    import csv
+
+    with (out / "contact.csv").open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        names = list(res["contacts"])
+        w.writerow(["flexion_deg"] + [f"{n}_{q}" for n in names for q in ("force_N", "hertz_area_mm2",
+                                                                          "hertz_peak_MPa", "foundation_area_mm2",
+                                                                          "foundation_peak_MPa")])
+        for i, fl in enumerate(res["flexion_deg"]):
+            row = [fl]
+            for n in names:
+                c = res["contacts"][n]
+                row += [c["force"][i], c["hertz"].area[i], c["hertz"].peak[i], c["ef_area"][i], c["ef_peak"][i]]
+            w.writerow([f"{v:.6g}" for v in row])
+    print(f"contact of {mech.params.name} under {args.load:g} N: {out / 'contact.csv'}, {out / 'contact.png'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="knee", description="Knee kinematics toolkit (mm, degrees at the CLI).")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -240,6 +335,21 @@ def build_parser() -> argparse.ArgumentParser:
     fp.add_argument("--force", action="store_true", help="write into a non-empty output folder")
     fp.add_argument("--quiet", action="store_true", help="no progress bar")
     fp.set_defaults(func=cmd_fit)
+    gp = sub.add_parser("gait", help="inverse dynamics, link forces and contact pressures over a gait cycle")
+    gp.add_argument("model", help="a bundled parameter set with a patella, or a TOML file")
+    gp.add_argument("--trial", help="gait CSV (README, 'Gait'); default: the bundled normative cycle")
+    gp.add_argument("--mass", type=float, default=72.0, help="body mass, kg (72)")
+    gp.add_argument("--height", type=float, default=1.75, help="body height, m (1.75)")
+    gp.add_argument("--out", default="knee-gait", help="output folder (knee-gait)")
+    gp.add_argument("--rrd", help="recording path (default OUT/gait.rrd)")
+    gp.add_argument("--force", action="store_true", help="write into a non-empty output folder")
+    gp.set_defaults(func=cmd_gait)
+    cp = sub.add_parser("contact", help="contact area and peak pressure against flexion under a load")
+    cp.add_argument("model")
+    cp.add_argument("--load", type=float, default=700.0, help="compressive load along the tibia, N (700)")
+    cp.add_argument("--out", default="knee-contact", help="output folder (knee-contact)")
+    cp.add_argument("--force", action="store_true")
+    cp.set_defaults(func=cmd_contact)
     return ap
 
 

@@ -1,0 +1,212 @@
+"""Plots and Rerun recordings of the clinical analyses: gait (``time`` timeline) and contact against
+flexion (``flexion_deg`` timeline); pressure maps as vertex colours on the condylar caps."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+import trimesh
+
+from models.contact import CARTILAGE, condyle_cap, foundation, hertz
+from models.gait import GaitResult
+from models.mechanism.solver import Mechanism
+from models.phantom import build_phantom
+from models.statics import solve_statics
+from toolkit import recording as R
+from toolkit.conventions import joint_to_pose
+
+
+def _colours(values, vmax):
+    import matplotlib
+
+    cmap = matplotlib.colormaps["viridis"]
+    return (cmap(np.clip(values / max(vmax, 1e-9), 0, 1)) * 255).astype(np.uint8)
+
+
+def _vertex_values(cap: trimesh.Trimesh, face_values):
+    """(n, faces) -> (n, vertices), each vertex the mean of its faces."""
+    nv = len(cap.vertices)
+    inc = np.zeros((len(cap.faces), nv))
+    np.add.at(inc, (np.repeat(np.arange(len(cap.faces)), 3), cap.faces.ravel()), 1.0)
+    inc /= np.maximum(inc.sum(axis=0, keepdims=True), 1)
+    return face_values @ inc
+
+
+def _align_minus_z(d):
+    """Rotations (n, 3, 3) taking (0, 0, -1) to unit vectors d (n, 3) (Rodrigues, vectorised)."""
+    a = np.array([0.0, 0.0, -1.0])
+    v = np.cross(a, d)
+    c = d @ a
+    K = np.zeros((len(d), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    K = K - np.swapaxes(K, 1, 2)
+    return np.eye(3) + K + K @ K / (1 + c)[:, None, None]
+
+
+def contact_directions(params, tf):
+    """Unit direction (n, 3), femur frame, from each contact's femoral centre toward its contact point."""
+    T = joint_to_pose(tf)
+    out = {}
+    for lk in params.links:
+        if lk.role != "contact":
+            continue
+        if lk.kind == "sphere-plane":
+            d = -(T[:, :3, :3] @ (lk.normal / np.linalg.norm(lk.normal)))
+        else:
+            bt = T[:, :3, :3] @ lk.tibia + T[:, :3, 3]
+            d = bt - lk.femur
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            if lk.tibia_surface == "concave":
+                d = -d
+        out[lk.name] = d
+    return out
+
+
+def gait_blueprint():
+    return rrb.Blueprint(rrb.Horizontal(
+        rrb.Spatial3DView(origin="leg", name="Leg"),
+        rrb.Vertical(rrb.TimeSeriesView(origin="metrics/knee_load", name="Knee load on the tibia"),
+                     rrb.TimeSeriesView(origin="metrics/members", name="Link and tendon forces (N)"),
+                     rrb.TimeSeriesView(origin="metrics/pressure", name="Peak pressure (MPa)")),
+        column_shares=[3, 2]), collapse_panels=True)
+
+
+def log_gait(rec, mech: Mechanism, res: GaitResult) -> None:
+    """The leg on the ``time`` timeline, GRF arrow, pressure maps on the condyles, forces as plots."""
+    t = res.trial.time
+    n = t.size
+    rec.log("leg", rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
+    ph = build_phantom(mech.params)
+    mm = {k: p.copy() for k, p in res.poses.items()}
+    for p in mm.values():
+        p[:, :3, 3] *= 1e3
+    R.log_mesh(rec, "leg/femur", ph.femur, R.BONE_COLOURS["femur"])
+    R.log_mesh(rec, "leg/tibia", ph.tibia, R.BONE_COLOURS["tibia"])
+    if ph.patella is not None:
+        R.log_mesh(rec, "leg/patella", ph.patella, R.BONE_COLOURS["patella"])
+        R.send_poses(rec, "leg/patella", "time", t, mm["patella"])
+    foot = trimesh.creation.box(extents=[200.0, 40.0, 80.0]).apply_translation([50.0, -45.0, 0.0])
+    R.log_mesh(rec, "leg/foot", foot, (190, 180, 160))
+    for k in ("femur", "tibia", "foot"):
+        R.send_poses(rec, f"leg/{k}", "time", t, mm[k])
+    # GRF as an arrow at the centre of pressure (world, mm; 1 mm per 2 N)
+    cop = mm["foot"][:, :3, :3] @ np.array([0.0, -68.0, 0.0]) + mm["foot"][:, :3, 3]
+    rec.send_columns("leg/grf", indexes=[R.time_column("time", t)],
+                     columns=rr.Arrows3D.columns(origins=cop, vectors=res.trial.grf * 0.5).partition(np.ones(n, int)))
+    # pressure maps on the condylar caps (elastic foundation), moved with the femur
+    dirs = contact_directions(mech.params, res.tf)
+    for name, e in res.contact.items():
+        if "cap" not in e:
+            continue
+        cap = e["cap"]
+        lk = mech.params.link(name)
+        vals = _vertex_values(cap, e["foundation_pressure"])
+        cols = _colours(vals, max(e["foundation_peak"].max(), 1e-6))
+        ent = f"leg/femur/{name}_pressure"
+        rec.log(ent, rr.Mesh3D(vertex_positions=cap.vertices.astype(np.float32),
+                               triangle_indices=cap.faces.astype(np.uint32)), static=True)
+        rec.send_columns(ent, indexes=[R.time_column("time", t)],
+                         columns=rr.Mesh3D.columns(vertex_colors=cols.reshape(-1, 4)).partition(
+                             np.full(n, len(cap.vertices))))
+        Rd = _align_minus_z(dirs[name])
+        Tl = np.tile(np.eye(4), (n, 1, 1))
+        Tl[:, :3, :3] = Rd
+        Tl[:, :3, 3] = lk.femur + 0.3 * dirs[name]  # just proud of the bone surface
+        R.send_poses(rec, ent, "time", t, Tl)
+    st = res.statics
+    for j, nm in enumerate(st.names):
+        R.send_scalars(rec, f"metrics/members/{nm}", "time", t, st.forces[:, j])
+    for k, ax in enumerate(("anterior", "proximal", "lateral")):
+        R.send_scalars(rec, f"metrics/knee_load/force_{ax}_N", "time", t, res.knee_force[:, k])
+        R.send_scalars(rec, f"metrics/knee_load/moment_{ax}_Nm", "time", t, res.knee_moment[:, k] * 1e-3)
+    for name, e in res.contact.items():
+        R.send_scalars(rec, f"metrics/pressure/{name}_hertz_peak", "time", t, e["hertz"].peak)
+        if "foundation_peak" in e:
+            R.send_scalars(rec, f"metrics/pressure/{name}_foundation_peak", "time", t, e["foundation_peak"])
+        R.send_scalars(rec, f"metrics/contact_force/{name}", "time", t, e["force"])
+    R.send_scalars(rec, "metrics/knee_flexion_deg", "time", t, np.degrees(res.trial.knee))
+
+
+def plot_gait(res: GaitResult, path, title: str = "") -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = res.trial.time
+    fig, ax = plt.subplots(2, 2, figsize=(12, 7))
+    ax[0, 0].plot(t, np.degrees(res.trial.knee), "k")
+    ax[0, 0].set_title("knee flexion (deg)")
+    for j, nm in enumerate(res.statics.names):
+        ax[0, 1].plot(t, res.statics.forces[:, j], label=nm)
+    ax[0, 1].set_title("member forces (N; tension +, contact compression -)")
+    ax[0, 1].legend(fontsize=7)
+    for nm, e in res.contact.items():
+        ax[1, 0].plot(t, e["force"], label=nm)
+        ax[1, 1].plot(t, e["hertz"].peak, label=f"{nm} Hertz")
+        if "foundation_peak" in e:
+            ax[1, 1].plot(t, e["foundation_peak"], "--", label=f"{nm} elastic foundation")
+    ax[1, 0].set_title("contact force (N, compression)")
+    ax[1, 1].set_title("peak pressure (MPa)")
+    ax[1, 0].legend(fontsize=7)
+    ax[1, 1].legend(fontsize=7)
+    for a in ax.ravel():
+        a.set_xlabel("time (s)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def contact_vs_flexion(mech: Mechanism, load: float = 700.0, flexion_deg=None, cartilage=CARTILAGE) -> dict:
+    """Contact force, Hertz and elastic-foundation area and peak pressure at each contact against flexion,
+    under a compressive ``load`` (N) along the tibia's long axis (seed 001 Fig. 3d)."""
+    lo, hi = (math.degrees(v) for v in mech.assembly_range)
+    if flexion_deg is None:
+        flexion_deg = np.arange(max(0.0, math.ceil(lo)), min(120.0, math.floor(hi)) + 1e-9, 5.0)
+    fl = np.asarray(flexion_deg, float)
+    st = solve_statics(mech, np.radians(fl), [0.0, load, 0.0])
+    out = {"flexion_deg": fl, "statics": st, "contacts": {}}
+    for lk in mech.params.links:
+        if lk.role != "contact":
+            continue
+        comp = np.maximum(-st.force(lk.name), 0.0)
+        surf = "plane" if lk.kind == "sphere-plane" else lk.tibia_surface
+        rf = lk.femur_radius or 24.0
+        hz = hertz(comp, rf, lk.tibia_radius, surf, cartilage, cartilage)
+        cap = condyle_cap(rf, subdivisions=5)
+        ef = [foundation(f, rf, lk.tibia_radius, surf, cap, cartilage) for f in comp]
+        out["contacts"][lk.name] = {"force": comp, "hertz": hz, "ef_area": np.array([e.area for e in ef]),
+                                    "ef_peak": np.array([e.peak for e in ef])}
+    return out
+
+
+def plot_contact(res: dict, path, title: str = "") -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fl = res["flexion_deg"]
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    tot_h = sum(c["hertz"].area for c in res["contacts"].values())
+    tot_e = sum(c["ef_area"] for c in res["contacts"].values())
+    ax[0].plot(fl, tot_h / 100, "k", label="total (Hertz)")
+    ax[0].plot(fl, tot_e / 100, "k--", label="total (elastic foundation)")
+    for nm, c in res["contacts"].items():
+        ax[0].plot(fl, c["hertz"].area / 100, label=f"{nm} (Hertz)")
+        ax[0].plot(fl, c["ef_area"] / 100, ":", label=f"{nm} (elastic foundation)")
+        ax[1].plot(fl, c["hertz"].peak, label=f"{nm} (Hertz)")
+        ax[1].plot(fl, c["ef_peak"], ":", label=f"{nm} (elastic foundation)")
+    ax[0].set_title("contact area (cm$^2$)")
+    ax[1].set_title("peak pressure (MPa)")
+    for a in ax:
+        a.set_xlabel("flexion (deg)")
+        a.legend(fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
