@@ -183,10 +183,9 @@ def _interp_pose(motion: Motion, group: str, flexion: float) -> np.ndarray:
 
 
 def _project(mesh_bone, p):
-    import trimesh
+    from models.fem.geometry import SurfaceQuery
 
-    closest, _, _ = trimesh.proximity.closest_point(mesh_bone, np.asarray(p, float)[None])
-    return closest[0]
+    return SurfaceQuery.of(mesh_bone).closest_points(np.asarray(p, float)[None])[0]
 
 
 def pf_first_estimate(subject: Subject, geo: Geometry, motion: Motion, ref_deg: float) -> tuple[PFGroup, dict]:

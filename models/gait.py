@@ -174,9 +174,10 @@ class Limb:
     patella_in_joint: object = None  # pin.SE3: the patella's frame in its helical joint's frame
 
 
-def build_limb(mech: Mechanism, anthro: Anthropometry, ankle_in_tibia=None) -> Limb:
-    """The chain of the module docstring for a mechanism with a patella. ``ankle_in_tibia`` (3,) mm
-    overrides the ankle centre (tibia frame; default (0, -L_shank, 0)), e.g. after an osteotomy."""
+def build_limb(mech: Mechanism, anthro: Anthropometry, ankle_in_tibia=None, hip_in_femur=None) -> Limb:
+    """The chain of the module docstring for a mechanism with a patella. ``ankle_in_tibia`` and
+    ``hip_in_femur`` (3,) mm override the ankle centre (tibia frame; default (0, -L_shank, 0)) and the hip
+    centre (femur frame; default (0, L_thigh, 0)), e.g. after an osteotomy."""
     import pinocchio as pin
 
     p = mech.params
@@ -189,7 +190,8 @@ def build_limb(mech: Mechanism, anthro: Anthropometry, ankle_in_tibia=None) -> L
     Lf, mf, cf, rf = anthro.foot
     hip = model.addJoint(0, pin.JointModelSphericalZYX(), pin.SE3.Identity(), "hip")
     # the femur body frame (knee model's frame) sits L_thigh below the hip centre
-    femur_in_hip = pin.SE3(np.eye(3), np.array([0.0, -Lt, 0.0]))
+    hip_c = np.array([0.0, Lt, 0.0]) if hip_in_femur is None else np.asarray(hip_in_femur, float) * 1e-3
+    femur_in_hip = pin.SE3(np.eye(3), -hip_c)
     model.appendBodyToJoint(hip, _inertia(pin, mt, Lt, [0.0, -ct * Lt, 0.0], rt), pin.SE3.Identity())
     knee = model.addJoint(hip, pin.JointModelFreeFlyer(), femur_in_hip, "knee")
     model.appendBodyToJoint(knee, _inertia(pin, ms, Ls, [0.0, -cs * Ls, 0.0], rs), pin.SE3.Identity())
@@ -301,7 +303,8 @@ def foundation_table(r_femur, r_tibia, surface, cartilage: Cartilage = CARTILAGE
 
 
 def analyse_gait(mech: Mechanism, trial: GaitTrial, anthro: Anthropometry | None = None,
-                 cartilage: Cartilage = CARTILAGE, ankle_in_tibia=None, foundation: bool = True) -> GaitResult:
+                 cartilage: Cartilage = CARTILAGE, ankle_in_tibia=None, foundation: bool = True,
+                 hip_in_femur=None) -> GaitResult:
     """Kinematics, inverse dynamics, statics and contact pressures for every frame of ``trial``."""
     import time
 
@@ -316,7 +319,7 @@ def analyse_gait(mech: Mechanism, trial: GaitTrial, anthro: Anthropometry | None
         raise AssemblyError(f"{mech.params.name}: knee flexion {math.degrees(trial.knee[k]):.1f} deg at t = "
                             f"{trial.time[k]:.3f} s is outside the assembly range {math.degrees(lo):.1f} to "
                             f"{math.degrees(hi):.1f} deg")
-    limb = build_limb(mech, anthro, ankle_in_tibia)
+    limb = build_limb(mech, anthro, ankle_in_tibia, hip_in_femur)
     model = limb.model
     data = model.createData()
     t = trial.time

@@ -169,6 +169,19 @@ def test_first_estimate_is_within_reach_and_assembles_near_extension(subject_dir
     assert lo < 0.0 < hi
 
 
+def test_tendon_centroids_are_projected_onto_the_ct_surfaces(subject_dir, tmp_path):
+    d = _copy(subject_dir, tmp_path)
+    toml = (d / "subject.toml").read_text().replace("project_tendon = false", "project_tendon = true")
+    (d / "subject.toml").write_text(toml)
+    s = load_subject(d)
+    first, info = first_estimate(s)
+    from models.fem.geometry import SurfaceQuery
+
+    for bone, p in (("tibia", first.pf.tendon_tibia), ("patella", first.pf.tendon_patella)):
+        mesh = s.ct[bone].copy().apply_transform(np.linalg.inv(info["frames"][bone]))
+        assert abs(SurfaceQuery.of(mesh).signed_distance(p[None])[0]) < 1e-3
+
+
 def test_fit_same_seed_same_result(subject_dir):
     s = load_subject(subject_dir)
     first, _ = first_estimate(s)

@@ -7,6 +7,8 @@
     knee fit SUBJECT_DIR --out OUT_DIR [--seed N] [--quick] [--no-global] [--no-recording] [--force]
     knee gait MODEL [--trial CSV] [--mass 72] [--height 1.75] [--out DIR] [--rrd FILE] [--force]
     knee contact MODEL [--load 700] [--out DIR] [--force]
+    knee osteotomy MODEL --bone tibia|femur --angle 8 [--plane px,py,pz,nx,ny,nz] [--hinge hx,hy,hz,ax,ay,az]
+                   [--release mcl] [--trial CSV] [--mass 72] [--height 1.75] [--out DIR] [--force]
 
 Angles in degrees, lengths in mm. Bad input gives a one-line ``knee: error: ...`` and exit code 2; no
 existing file is overwritten unless ``--force`` is given.
@@ -211,10 +213,10 @@ def cmd_fit(args) -> int:
 
 
 def _out_dir(path: str, force: bool) -> Path:
+    """Check an output folder (created later, once the inputs have been checked)."""
     d = Path(path)
-    if d.exists() and any(d.iterdir()) and not force:
+    if d.exists() and (not d.is_dir() or (any(d.iterdir()) and not force)):
         raise KneeInputError(f"output folder {d} exists and is not empty; not overwritten (use --force)")
-    d.mkdir(parents=True, exist_ok=True)
     return d
 
 
@@ -249,11 +251,13 @@ def cmd_gait(args) -> int:
 
     out = _out_dir(args.out, args.force)
     rrd = Path(args.rrd) if args.rrd else out / "gait.rrd"
-    _check_new(rrd, args.force)
+    if args.rrd:
+        _check_new(rrd, args.force)
     anthro = Anthropometry(args.mass, args.height)
     trial = read_gait_csv(args.trial, args.mass) if args.trial else normative_trial(args.mass)
     mech = Mechanism.from_name(args.model)
     res = analyse_gait(mech, trial, anthro)
+    out.mkdir(parents=True, exist_ok=True)
     write_gait_table(out / "gait.csv", res)
     plot_gait(res, out / "gait.png", f"{mech.params.name}: {trial.source}")
     rec = recording.new_recording()
@@ -284,6 +288,7 @@ def cmd_contact(args) -> int:
     out = _out_dir(args.out, args.force)
     mech = Mechanism.from_name(args.model)
     res = contact_vs_flexion(mech, args.load)
+    out.mkdir(parents=True, exist_ok=True)
     plot_contact(res, out / "contact.png", f"{mech.params.name}: {args.load:g} N along the tibia")
     import csv
 
@@ -300,6 +305,53 @@ def cmd_contact(args) -> int:
                 row += [c["force"][i], c["hertz"].area[i], c["hertz"].peak[i], c["ef_area"][i], c["ef_peak"][i]]
             w.writerow([f"{v:.6g}" for v in row])
     print(f"contact of {mech.params.name} under {args.load:g} N: {out / 'contact.csv'}, {out / 'contact.png'}")
+    return 0
+
+
+def _six(text: str, what: str) -> tuple[np.ndarray, np.ndarray]:
+    try:
+        v = np.array([float(x) for x in text.split(",")])
+    except ValueError:
+        v = np.zeros(0)
+    if v.size != 6 or not np.all(np.isfinite(v)):
+        raise KneeInputError(f"{what} must be six comma-separated numbers (point x,y,z then direction x,y,z in mm), "
+                             f"got {text!r}")
+    return v[:3], v[3:]
+
+
+def cmd_osteotomy(args) -> int:
+    from models.gait import normative_trial, read_gait_csv
+    from models.mechanism.params import load_model, save_toml
+    from models.osteotomy import Cut, compare, default_cut, osteotomy, plot, report_markdown, write_recording
+    from models.phantom import build_phantom
+
+    params = load_model(args.model)
+    if not math.isfinite(args.angle):
+        raise KneeInputError(f"--angle must be a number of degrees, got {args.angle}")
+    out = _out_dir(args.out, args.force)
+    if args.plane is None or args.hinge is None:
+        ph = build_phantom(params)
+        base = default_cut(args.bone, ph.tibia if args.bone == "tibia" else ph.femur, args.angle)
+    else:
+        base = None
+    pp, pn = _six(args.plane, "--plane") if args.plane else (base.plane_point, base.plane_normal)
+    hp, ha = _six(args.hinge, "--hinge") if args.hinge else (base.hinge_point, base.hinge_axis)
+    cut = Cut(args.bone, pp, pn, hp, ha, float(args.angle))
+    res = osteotomy(params, cut, height=args.height, release=tuple(args.release or ()))
+    trial = read_gait_csv(args.trial, args.mass) if args.trial else normative_trial(args.mass)
+    cmp = compare(res, trial, height=args.height, mass=args.mass)
+    md = report_markdown(cut, res, cmp)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "report.md").write_text(md, encoding="utf-8")
+    plot(cut, res, cmp, out / "osteotomy.png")
+    write_recording(cut, res, out / "osteotomy.rrd")
+    save_toml(res["params"], out / "after.toml", overwrite=True)
+    ab, aa = res["align_before"], res["align_after"]
+    print(f"{params.name}: {args.bone} osteotomy {args.angle:+g} deg; moved: {', '.join(res['moved']) or 'nothing'}")
+    print(f"HKA deviation {ab.hka_deg:+.2f} -> {aa.hka_deg:+.2f} deg (+ varus); weight-bearing line "
+          f"{ab.wbl_percent:.1f} -> {aa.wbl_percent:.1f} % of the plateau (target 62.5 %)")
+    print(f"report: {out / 'report.md'}\nplot: {out / 'osteotomy.png'}\nparameters after: {out / 'after.toml'}\n"
+          f"recording: {out / 'osteotomy.rrd'}  (open with: rerun {out / 'osteotomy.rrd'})")
     return 0
 
 
@@ -350,6 +402,21 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument("--out", default="knee-contact", help="output folder (knee-contact)")
     cp.add_argument("--force", action="store_true")
     cp.set_defaults(func=cmd_contact)
+    op = sub.add_parser("osteotomy", help="virtual osteotomy: cut, open/close a wedge, recompute axes, kinematics, gait")
+    op.add_argument("model")
+    op.add_argument("--bone", choices=("tibia", "femur"), default="tibia")
+    op.add_argument("--angle", type=float, required=True, help="wedge angle, deg (+ opens opposite the hinge)")
+    op.add_argument("--plane", help="cut plane: point and normal in the bone frame, px,py,pz,nx,ny,nz (mm); "
+                                    "default: transverse, 35 mm below (tibia) / 60 mm above (femur) the joint")
+    op.add_argument("--hinge", help="hinge: point and axis, hx,hy,hz,ax,ay,az (mm); default: 8 mm inside the "
+                                    "lateral cortex, along x")
+    op.add_argument("--release", action="append", help="release a ligament whose insertion moves (repeatable)")
+    op.add_argument("--trial", help="gait CSV (default: the bundled normative cycle)")
+    op.add_argument("--mass", type=float, default=72.0)
+    op.add_argument("--height", type=float, default=1.75)
+    op.add_argument("--out", default="knee-osteotomy", help="output folder (knee-osteotomy)")
+    op.add_argument("--force", action="store_true")
+    op.set_defaults(func=cmd_osteotomy)
     return ap
 
 

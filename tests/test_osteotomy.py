@@ -1,0 +1,100 @@
+"""Virtual osteotomy: the wedge, moved insertions, alignment, the recomputed knee, and bad cuts."""
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from models.mechanism.params import load_model
+from models.osteotomy import (FUJISAWA, Cut, alignment, apply_cut, default_cut, moved_side, osteotomy,
+                              wedge_transform)
+from models.phantom import build_phantom
+from toolkit.errors import KneeInputError
+
+
+@pytest.fixture(scope="module")
+def vol():
+    p = load_model("volunteer")
+    return p, build_phantom(p)
+
+
+def test_wedge_is_a_rotation_about_the_hinge_that_opens_opposite_it(vol):
+    p, ph = vol
+    cut = default_cut("tibia", ph.tibia, 8.0)
+    W = wedge_transform(cut)
+    np.testing.assert_allclose(W[:3, :3] @ cut.hinge_point + W[:3, 3], cut.hinge_point, atol=1e-12)  # hinge fixed
+    np.testing.assert_allclose(W[:3, :3].T @ W[:3, :3], np.eye(3), atol=1e-12)
+    assert math.degrees(math.acos((np.trace(W[:3, :3]) - 1) / 2)) == pytest.approx(8.0)
+    # the medial edge of the distal fragment (opposite the lateral hinge) moves away from the knee: opening
+    medial = np.array([cut.hinge_point[0], cut.plane_point[1], -20.0])
+    assert (W[:3, :3] @ medial + W[:3, 3])[1] < medial[1] - 2.0
+    assert moved_side(cut, [[0, -100, 0], [0, 10, 0]]).tolist() == [True, False]
+
+
+def test_alignment_closed_form_for_a_straight_limb(vol):
+    """Hip and ankle on the long axes and a tibia at zero adduction: HKA equals the knee's own frontal
+    angle, and the weight-bearing line crosses the plateau where the geometry says."""
+    from models.mechanism import Mechanism
+    from toolkit.conventions import joint_to_pose
+
+    p, ph = vol
+    mech = Mechanism(p)
+    H, A = np.array([0.0, 430.0, 0.0]), np.array([0.0, -430.0, 0.0])
+    al = alignment(mech, H, A, (-50.0, 50.0))
+    T = joint_to_pose(mech.motion_at(np.array([0.0]))[0][0])
+    d1 = -H
+    d2 = T[:3, :3] @ A
+    d1[0] = d2[0] = 0
+    ref = math.degrees(math.atan2(np.cross(d1, d2)[0], d1 @ d2))
+    assert al.hka_deg == pytest.approx(ref, abs=1e-9)
+    assert np.isclose((np.linalg.inv(T) @ np.r_[al.crossing, 1])[1], 0.0, atol=1e-9)  # on the plateau plane
+    assert al.wbl_percent == pytest.approx(50.0 + (np.linalg.inv(T) @ np.r_[al.crossing, 1])[2], abs=1e-9)
+
+
+def test_opening_wedge_moves_the_weight_bearing_line_laterally(vol):
+    p, ph = vol
+    res = osteotomy(p, default_cut("tibia", ph.tibia, 5.0), release=("mcl",))
+    b, a = res["align_before"], res["align_after"]
+    assert a.wbl_percent > b.wbl_percent + 10 and a.hka_deg < b.hka_deg  # toward valgus
+    assert "mcl tibia point" in res["moved"] and "ankle centre" in res["moved"]
+    assert abs(a.wbl_percent - FUJISAWA) < abs(b.wbl_percent - FUJISAWA)
+    # the unmoved links are untouched; the knee still assembles through 0..120 deg
+    for lb, la in zip(p.links, res["params"].links):
+        if lb.name in ("acl", "pcl", "lc", "mc"):
+            np.testing.assert_array_equal(lb.tibia, la.tibia)
+    assert res["after"].in_range(0.0) and res["after"].in_range(math.radians(120))
+    zero = osteotomy(p, default_cut("tibia", ph.tibia, 0.0))  # a zero wedge changes nothing
+    assert zero["align_after"].wbl_percent == pytest.approx(zero["align_before"].wbl_percent, abs=1e-9)
+
+
+def test_bad_cuts_are_clear_errors(vol):
+    p, ph = vol
+    good = default_cut("tibia", ph.tibia, 8.0)
+    with pytest.raises(KneeInputError, match="misses the tibia"):
+        osteotomy(p, Cut("tibia", np.array([0, -400.0, 0]), np.array([0, 1.0, 0]), good.hinge_point,
+                         good.hinge_axis, 8.0))
+    with pytest.raises(KneeInputError, match="outside the tibia"):
+        osteotomy(p, Cut("tibia", good.plane_point, good.plane_normal, np.array([0, -35.0, 70.0]),
+                         good.hinge_axis, 8.0))
+    with pytest.raises(KneeInputError, match="within"):
+        osteotomy(p, Cut("tibia", good.plane_point, good.plane_normal, good.hinge_point, good.hinge_axis, 45.0))
+    with pytest.raises(KneeInputError, match="does not assemble.*--release mcl"):
+        osteotomy(p, good)  # the MCL insertion moves 4 mm: an isometric link cannot follow
+    with pytest.raises(KneeInputError, match="not a ligament"):
+        apply_cut(p, good, release=("lc",))
+
+
+def test_cli_osteotomy(tmp_path):
+    knee = [sys.executable, "-m", "toolkit.cli", "osteotomy", "volunteer"]
+    r = subprocess.run(knee + ["--angle", "5", "--release", "mcl", "--out", str(tmp_path / "o")],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    for f in ("report.md", "osteotomy.png", "osteotomy.rrd", "after.toml"):
+        assert (tmp_path / "o" / f).stat().st_size > 0
+    assert "weight-bearing line" in (tmp_path / "o/report.md").read_text()
+    assert load_model(tmp_path / "o/after.toml").link("mcl").length > 100.79
+    r = subprocess.run(knee + ["--angle", "5", "--plane", "0,-400,0,0,1", "--out", str(tmp_path / "p")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and "six comma-separated" in r.stderr and not (tmp_path / "p").exists()
