@@ -64,6 +64,8 @@ def test_statics_flags_members_that_cannot_carry_the_load(volunteer):
     assert any("would have to push" in x for x in flat)
     pulled = solve_statics(volunteer, math.radians(20.0), [0.0, -700.0, 0.0])  # a distracting load
     assert any("would have to pull" in x for x in pulled.flags[0])
+    slack = solve_statics(volunteer, math.radians(30.0), [-638.8, 315.2, 290.6], [25891.0, -15092.0, 33782.0])
+    assert "every ligament is slack or pushing" in slack.flags[0] and not slack.ok[0]
     with pytest.raises(KneeInputError, match="patella"):
         solve_statics(Mechanism.from_name("generic-sancisi2017"), 0.3, [0, 1, 0])
     with pytest.raises(KneeInputError):
