@@ -132,3 +132,24 @@ def test_cli_gait(tmp_path):
     r = subprocess.run([sys.executable, "-m", "toolkit.cli", "gait", "generic-sancisi2017", "--out",
                         str(tmp_path / "h")], capture_output=True, text=True)
     assert r.returncode == 2 and "patella" in r.stderr
+
+
+def test_cli_contact_against_flexion(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "toolkit.cli", "contact", "volunteer", "--load", "700", "--out",
+                        str(tmp_path / "c")], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    rows = (tmp_path / "c/contact.csv").read_text().splitlines()
+    head = rows[0].split(",")
+    table = np.array([[float(v) for v in row.split(",")] for row in rows[1:]])
+    assert table[0, 0] == 0.0 and table[-1, 0] == 120.0
+    # with Hertz, area and peak pressure follow from the force by the closed form (independent recomputation)
+    from models.contact import hertz
+    from models.mechanism.params import load_model
+
+    lc = load_model("volunteer").link("lc")
+    f = table[:, head.index("lc_force_N")]
+    np.testing.assert_allclose(table[:, head.index("lc_hertz_peak_MPa")],
+                               hertz(f, lc.femur_radius, lc.tibia_radius, "convex").peak, rtol=1e-5, atol=1e-6)
+    r = subprocess.run([sys.executable, "-m", "toolkit.cli", "contact", "volunteer", "--load", "-5", "--out",
+                        str(tmp_path / "d")], capture_output=True, text=True)
+    assert r.returncode == 2 and "--load" in r.stderr
