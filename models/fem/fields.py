@@ -182,3 +182,59 @@ class MappedPenaltyContact:
         D3 = sp.kron(self._dmat(), sp.identity(3), format="csr")
         nn = self.k * self._nrm[:, :, None] * self._nrm[:, None, :]
         return (D3.T @ sp.block_diag(list(nn), format="csr") @ D3).tocsr()
+
+
+class MatrixMapping:
+    """Points given by a fixed sparse linear map of the grid nodes, ``p = J x`` (P x N): the same interface
+    as :class:`TrilinearMapping`, for points carried by a bone rather than by a grid cell."""
+
+    def __init__(self, J):
+        self.J = sp.csr_matrix(J)
+        self.J3 = sp.kron(self.J, sp.identity(3, format="csr"), format="csr")
+
+    def apply(self, x):
+        return self.J @ np.asarray(x, float)
+
+    def apply_transpose(self, f):
+        return self.J.T @ np.asarray(f, float)
+
+
+def affine_point_map(bone: "MappedBoneElasticity", points) -> MatrixMapping:
+    """Points (P, 3) rigidly attached to a bone: each is the minimum-norm affine combination of the bone's
+    rest nodes (exact for any affine, so any rigid, motion of the nodes), composed with the bone's
+    embedding in the grid."""
+    X = bone.el.X
+    A = np.vstack([X.T, np.ones(len(X))])  # (4, n)
+    B = np.vstack([np.asarray(points, float).T, np.ones(len(points))])  # (4, P)
+    W = (np.linalg.solve(A @ A.T, B)).T @ A  # (P, n)
+    return MatrixMapping(sp.csr_matrix(W) @ bone.map.J)
+
+
+class MappedTargets:
+    """Penalty springs (``k`` N/mm each) pulling mapped points to target positions: the prescribed bone
+    nodes of a quasi-static solve. ``targets`` (P, 3) can be moved between steps."""
+
+    def __init__(self, mapping, targets, k=100.0):
+        self.map = mapping
+        self.targets = np.array(targets, float)
+        self.k = float(k)
+
+    def forces(self, x):
+        return -self.k * self.map.apply_transpose(self.map.apply(x) - self.targets)
+
+    def apply(self, p):
+        return self.k * self.map.apply_transpose(self.map.apply(p))
+
+    def matrix(self):
+        return (self.k * (self.map.J3.T @ self.map.J3)).tocsr()
+
+
+def mapped_links(ma, mb, rest_length, k=1000.0) -> MappedSprings:
+    """Distance springs between points of two mappings (e.g. the mechanism's links between femur and tibia)."""
+    s = MappedSprings.__new__(MappedSprings)
+    s.ma, s.mb = ma, mb
+    s.k = float(k)
+    s.L0 = np.atleast_1d(np.asarray(rest_length, float))
+    s._K = np.zeros((len(s.L0), 3, 3))
+    s.n = ma.J.shape[1]
+    return s
