@@ -80,14 +80,24 @@ def target_points(model: AssociationModel, mech: Mechanism, footprint_radius=10.
 def run_standard_case(mech: Mechanism, flexion_deg: float = 90.0, camera: Camera | None = None,
                       noise: DepthNoise | None = DepthNoise(), settings: FemSettings | None = None,
                       bone_force_scale: float = 1.0, surface_k: float = 2.0, max_steps: int = 400,
-                      model: AssociationModel | None = None, seed: int = 0, progress=True) -> CaseResult:
-    """Run the paper's method on the phantom standard case; see the module docstring."""
+                      model: AssociationModel | None = None, seed: int = 0, progress=True,
+                      truth: Mechanism | None = None) -> CaseResult:
+    """Run the paper's method on the phantom standard case; see the module docstring. ``truth``: another
+    parameter set that generates the truth (default ``mech``: the model is built from ``mech``)."""
     t_start = time.perf_counter()
     model = model or build_association_model(mech, settings)
     ph = model.phantom
-    tf, pf, _ = mech.solve(np.radians(flexion_deg))
+    tmech = truth or mech
+    if truth is not None:
+        from models.phantom import build_phantom
+
+        s_ = model.settings
+        ph_true = build_phantom(truth.params, shaft_length=s_.shaft_length, cartilage=s_.cartilage)
+    else:
+        ph_true = ph
+    tf, pf, _ = tmech.solve(np.radians(flexion_deg))
     T_true = joint_to_pose(tf)
-    skin_true = ph.skin(T_true, joint_to_pose(pf) if mech.has_pf else None)
+    skin_true = ph_true.skin(T_true, joint_to_pose(pf) if tmech.has_pf else None)
     cam = camera or default_camera()
     rng = np.random.default_rng(seed)
     depth = render_depth(skin_true.vertices, skin_true.faces, cam)

@@ -114,6 +114,14 @@ def hex_stiffness(X: np.ndarray, cells: np.ndarray, D: np.ndarray) -> np.ndarray
     return np.einsum("eq,eqki,kl,eqlj->eij", detJ, B, D, B)
 
 
+def _hex_ok(xe: np.ndarray) -> bool:
+    try:
+        hex_gradients(xe[None])
+        return True
+    except KneeInputError:
+        return False
+
+
 def _frames(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Orthonormal frames (E, 3, 3), columns (x, y, z), from directions a and b by Gram-Schmidt."""
     x = a / np.linalg.norm(a, axis=1, keepdims=True)
@@ -161,17 +169,50 @@ class CorotationalElements:
             raise KneeInputError("cells refer to nodes that do not exist")
         self.kind = "tet" if self.cells.shape[1] == 4 else "hex"
         D = elasticity_matrix(E, nu)
+        self._D = D
+        self._w = np.ones(len(self.cells)) if weights is None else np.asarray(weights, float)
         stiff = tet_stiffness if self.kind == "tet" else hex_stiffness
         self.K = stiff(self.X, self.cells, D)
         if weights is not None:
-            self.K = self.K * np.asarray(weights, float)[:, None, None]
+            self.K = self.K * self._w[:, None, None]
         self._frames = tet_frames if self.kind == "tet" else hex_frames
-        self._F0 = self._frames(self.X[self.cells])
+        self.Xe = self.X[self.cells]  # per-element rest coordinates (E, n, 3)
+        self._F0 = self._frames(self.Xe)
         self.R = np.broadcast_to(np.eye(3), (len(self.cells), 3, 3)).copy()
 
     @property
     def n_nodes_per_element(self) -> int:
         return self.cells.shape[1]
+
+    def rebase(self, x: np.ndarray, drop_inverted: bool = True) -> int:
+        """Make positions ``x`` (N, 3) the stress-free reference of every element that is not inverted there
+        (stiffness, rest shape and frame rebuilt). Elements inverted at ``x`` are dropped (zero stiffness)
+        or, with ``drop_inverted=False``, keep their old reference. Returns the number of inverted ones."""
+        x = np.asarray(x, dtype=float)
+        xe = x[self.cells]
+        if self.kind == "tet":
+            vol = np.einsum("ij,ij->i", np.cross(xe[:, 1] - xe[:, 0], xe[:, 2] - xe[:, 0]), xe[:, 3] - xe[:, 0])
+            ok = vol > 1e-9 * np.abs(vol).max()
+        else:
+            ok = np.ones(len(self.cells), bool)
+            try:
+                hex_gradients(xe)
+            except KneeInputError:
+                ok = np.array([_hex_ok(e) for e in xe])  # rare: find the inverted ones
+        stiff = tet_stiffness if self.kind == "tet" else hex_stiffness
+        K = self.K.copy()
+        K[ok] = stiff(x, self.cells[ok], self._D) * self._w[ok, None, None]
+        if drop_inverted:
+            K[~ok] = 0.0
+        self.K = K
+        Xe = self.Xe.copy()
+        Xe[ok] = xe[ok]
+        self.Xe = Xe
+        F0 = self._F0.copy()
+        F0[ok] = self._frames(xe[ok])
+        self._F0 = F0
+        self.R = np.broadcast_to(np.eye(3), (len(self.cells), 3, 3)).copy()
+        return int((~ok).sum())
 
     def update_rotations(self, x: np.ndarray) -> np.ndarray:
         """Element rotations (E, 3, 3) from current positions ``x`` (N, 3); stored in ``self.R``."""
@@ -184,7 +225,7 @@ class CorotationalElements:
         With ``corotational=False``, the small-strain force ``-K (x - X)`` (for comparison).
         """
         xe = np.asarray(x, float)[self.cells]
-        Xe = self.X[self.cells]
+        Xe = self.Xe
         E, n = self.cells.shape
         if corotational:
             R = self.update_rotations(x)

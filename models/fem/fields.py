@@ -159,6 +159,11 @@ class MappedPenaltyContact:
         np.add.at(fb, j, -mag[:, None] * nrm)
         return self.ma.apply_transpose(fa) + self.mb.apply_transpose(fb)
 
+    def rebase(self, x) -> None:
+        """Take the activation distances from positions ``x`` (bones that touch there are force-free)."""
+        d0, _ = cKDTree(self.mb.apply(x)).query(self.ma.apply(x))
+        self.reach = np.minimum(self.distance, d0)
+
     def _dmat(self):
         i, j = self._pairs
         Ja = self.ma.J[i]

@@ -70,14 +70,25 @@ class ImplicitEuler:
     def _ck(self):
         return self.dt * self.b + self.dt * self.dt
 
-    def _operator(self, p):
-        """A p on the free DOFs, identity on the fixed ones (velocities held at zero)."""
-        q = p * self._free.reshape(-1, 3)
+    def _full(self, q):
+        """A q with no projection (all DOFs)."""
         out = self._cm * self.m[:, None] * q
         for f in self.fields:
             out += self._ck * f.apply(q)
-        out = out * self._free.reshape(-1, 3) + p * (1 - self._free.reshape(-1, 3))
         return out
+
+    def _operator(self, p):
+        """A p on the free DOFs, identity on the fixed ones (velocities held at zero)."""
+        fr = self._free.reshape(-1, 3)
+        return self._full(p * fr) * fr + p * (1 - fr)
+
+    def _set_prescribed(self, mask):
+        """Nodes whose motion is prescribed this step are excluded from the solve, like fixed ones."""
+        mask = np.zeros(len(self.x), bool) if mask is None else np.asarray(mask, bool)
+        free = np.repeat(~(self.fixed | mask), 3).astype(float)
+        if not np.array_equal(free, self._free):
+            self._free = free
+            self._lu = None  # the preconditioner must see the same free set
 
     def _refresh(self):
         K = sum((f.matrix() for f in self.fields), sp.csr_matrix((3 * len(self.m),) * 2))
@@ -101,15 +112,29 @@ class ImplicitEuler:
 
         return spla.LinearOperator((n, n), matvec=apply)
 
-    def step(self, external=None) -> StepInfo:
-        """One step; ``external(x)`` returns external forces (N, 3) or None."""
+    def step(self, external=None, prescribed=None) -> StepInfo:
+        """One step; ``external(x)`` returns external forces (N, 3) or None.
+
+        ``prescribed``: optional ``(mask (N,), positions (N, 3))``: the masked nodes move to the given
+        positions in this step (Dirichlet conditions; the free nodes are solved with their coupling,
+        ``A_ff v_f = r_f - A_fc v_c``)."""
         x = self.x
         f = sum(fl.forces(x) for fl in self.fields)
         if external is not None:
             fe = external(x)
             if fe is not None:
                 f = f + fe
-        rhs = (self.m[:, None] * self.v + self.dt * f).ravel() * self._free
+        vc = np.zeros_like(x)
+        if prescribed is not None:
+            mask, target = prescribed
+            self._set_prescribed(mask)
+            vc[mask] = (np.asarray(target, float)[mask] - x[mask]) / self.dt
+        else:
+            self._set_prescribed(None)
+        rhs = (self.m[:, None] * self.v + self.dt * f)
+        if prescribed is not None:
+            rhs = rhs - self._full(vc)
+        rhs = rhs.ravel() * self._free
         n = rhs.size
         A = spla.LinearOperator((n, n), matvec=lambda p: self._operator(p.reshape(-1, 3)).ravel())
         refreshed = False
@@ -127,7 +152,7 @@ class ImplicitEuler:
         if its[0] > self.refresh_iterations and not refreshed:
             self._refresh()
             refreshed = True
-        self.v = v.reshape(-1, 3)
+        self.v = v.reshape(-1, 3) + vc
         self.x = x + self.dt * self.v
         self.time += self.dt
         self.steps += 1
