@@ -204,15 +204,19 @@ class MatrixMapping:
         return self.J.T @ np.asarray(f, float)
 
 
-def affine_point_map(bone: "MappedBoneElasticity", points) -> MatrixMapping:
-    """Points (P, 3) rigidly attached to a bone: each is the minimum-norm affine combination of the bone's
-    rest nodes (exact for any affine, so any rigid, motion of the nodes), composed with the bone's
-    embedding in the grid."""
+def affine_point_map(bone: "MappedBoneElasticity", points, nearest: int = 12) -> MatrixMapping:
+    """Points (P, 3) rigidly attached to a bone: each is the minimum-norm affine combination of its
+    ``nearest`` rest bone nodes (exact for any affine, so any rigid, motion of the nodes; few nodes keep
+    the coupling sparse), composed with the bone's embedding in the grid."""
     X = bone.el.X
-    A = np.vstack([X.T, np.ones(len(X))])  # (4, n)
-    B = np.vstack([np.asarray(points, float).T, np.ones(len(points))])  # (4, P)
-    W = (np.linalg.solve(A @ A.T, B)).T @ A  # (P, n)
-    return MatrixMapping(sp.csr_matrix(W) @ bone.map.J)
+    P = np.atleast_2d(np.asarray(points, float))
+    k = min(nearest, len(X))
+    idx = np.argsort(((P[:, None, :] - X[None, :, :]) ** 2).sum(-1), axis=1)[:, :k]  # (P, k)
+    A = np.concatenate([np.swapaxes(X[idx], 1, 2), np.ones((len(P), 1, k))], axis=1)  # (P, 4, k)
+    B = np.concatenate([P, np.ones((len(P), 1))], axis=1)[:, :, None]  # (P, 4, 1)
+    w = (np.swapaxes(A, 1, 2) @ np.linalg.solve(A @ np.swapaxes(A, 1, 2), B))[:, :, 0]  # (P, k)
+    W = sp.csr_matrix((w.ravel(), (np.repeat(np.arange(len(P)), k), idx.ravel())), shape=(len(P), len(X)))
+    return MatrixMapping(W @ bone.map.J)
 
 
 class MappedTargets:

@@ -212,3 +212,30 @@ def run_method(method: str, truth: Mechanism, prior: Mechanism, flexion_deg: flo
     flex, _ = knee_angles(model)
     errors = _evaluate(model, prior, truth_tf, x=s.x, T_world=est.T_world_model)
     return MethodResult(method, flexion_deg, flex, errors, steps, time.perf_counter() - t0, converged, notes)
+
+
+def compare_cases(truth: Mechanism, prior: Mechanism, flexions_deg, cameras: dict, methods=METHODS,
+                  noise=DepthNoise(), seed: int = 0, progress=None) -> list[dict]:
+    """Every method on every (flexion, camera) case; one row per run with the errors and timings.
+    ``cameras``: {name: Camera}. ``progress(text)`` is called before each run."""
+    rows = []
+    for cam_name, cam in cameras.items():
+        for fl in flexions_deg:
+            for method in methods:
+                if progress:
+                    progress(f"{method} at {fl:g} deg, camera {cam_name}")
+                try:
+                    r = run_method(method, truth, prior, float(fl), cam, noise, seed,
+                                   model=None if method == "kinematics" else build_association_model(prior))
+                except KneeInputError as e:
+                    rows.append({"method": method, "camera": cam_name, "flexion_true_deg": fl, "failed": str(e)})
+                    continue
+                rows.append({"method": method, "camera": cam_name, "flexion_true_deg": fl,
+                             "flexion_estimated_deg": r.flexion_estimated_deg,
+                             "femur_footprints_mm": r.errors["femur"]["footprints"][0],
+                             "tibia_footprints_mm": r.errors["tibia"]["footprints"][0],
+                             "femur_epiphysis_mm": r.errors["femur"]["epiphysis"][0],
+                             "tibia_epiphysis_mm": r.errors["tibia"]["epiphysis"][0],
+                             "steps": r.steps, "wall_seconds": r.wall_seconds, "converged": r.converged,
+                             "notes": "; ".join(r.notes), "failed": ""})
+    return rows
