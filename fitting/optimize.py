@@ -102,7 +102,42 @@ def _ball(w, radius):
     return off, J
 
 
-class TFFit:
+class MotionFit:
+    """The objective shared by the TF and PF fits: the noise-weighted differences between the model's and
+    the measured components at the measured flexion angles, the first ``n_deg`` components (angles) in
+    degrees, the others in mm. Subclasses give ``_compared(w) -> (model (n, c), measured (n, c), ok)``,
+    ``weights`` (c,) and the exact ``jacobian``."""
+
+    n_deg = 0
+
+    def _compared(self, w):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _units(self, d):
+        """Differences (n, c) or their derivatives (n, c, p): the first ``n_deg`` components rad -> deg,
+        then weighted."""
+        d = np.array(d, copy=True)
+        d[:, :self.n_deg] = np.degrees(d[:, :self.n_deg])
+        return d * self.weights.reshape((1, -1) + (1,) * (d.ndim - 2))
+
+    def residuals(self, w) -> np.ndarray:
+        """(c n,) model minus measured, weighted; a constant ``REJECTED`` for a rejected candidate."""
+        model, measured, ok = self._compared(w)
+        if not ok:
+            return np.full(measured.size, REJECTED)
+        return self._units(model - measured).ravel()
+
+    def cost(self, w) -> float:
+        r = self.residuals(w)
+        return float(r @ r)
+
+    def mae(self, w) -> np.ndarray:
+        """(c,) mean absolute differences (deg, mm) of the candidate against the measured motion."""
+        r = self.residuals(w).reshape(-1, len(self.weights))
+        return np.abs(r / self.weights).mean(axis=0)
+
+
+class TFFit(MotionFit):
     """The fitting problem of the TF group; see the module docstring.
 
     Parameters
@@ -166,22 +201,11 @@ class TFFit:
         self.evaluations += 1
         return tf[self.index], bool(ok and np.all(cond < self.max_condition))
 
-    @staticmethod
-    def _units(d):
-        d = np.array(d, copy=True)
-        d[:, :2] = np.degrees(d[:, :2])
-        return d
+    n_deg = 2  # adduction, internal rotation; then the three translations
 
-    def residuals(self, w) -> np.ndarray:
-        """(5 n,) model minus measured: adduction, internal rotation (deg), translations (mm)."""
+    def _compared(self, w):
         tf, ok = self.model_motion(w)
-        if not ok:
-            return np.full(5 * len(self.alphas), REJECTED)
-        return (self._units(tf[:, 1:] - self.motion.tf[:, 1:]) * self.weights).ravel()
-
-    def cost(self, w) -> float:
-        r = self.residuals(w)
-        return float(r @ r)
+        return tf[:, 1:], self.motion.tf[:, 1:], ok
 
     def jacobian(self, w) -> np.ndarray:
         """Exact d residuals / d w, (5 n, 35), from the mechanism's sensitivities."""
@@ -189,10 +213,8 @@ class TFFit:
         if not ok:
             return np.zeros((5 * len(self.alphas), 35))
         sens = tf_sensitivities(self.params_vector(w), self.kinds, tf)
-        dq = sens.d_params[:, 1:6, :].copy()  # (n, 5, N_PARAMS): beta, gamma, P
-        dq[:, :2, :] = np.degrees(dq[:, :2, :])
-        dq = dq * self.weights[None, :, None]
-        return (dq.reshape(-1, self.p0.size) @ self._dparams_dw(w))
+        dq = self._units(sens.d_params[:, 1:6, :])  # (n, 5, N_PARAMS): beta, gamma, P
+        return dq.reshape(-1, self.p0.size) @ self._dparams_dw(w)
 
 
 @dataclass
@@ -273,11 +295,9 @@ def fit_tf(first: MechanismParams, motion: Motion, seed: int = 0, global_stage: 
                                            say, "TF fit")
     if not prob.model_motion(w)[1]:
         raise KneeInputError("no candidate within the bounds assembles over the measured range")
-    r = prob.residuals(w)
-    mae = np.abs(r.reshape(-1, 5) / prob.weights).mean(axis=0)
     return FitResult(params=prob.params(w), w=w, cost_first=cost_first, cost_global=cost_global,
-                     cost_final=float(r @ r), evaluations=prob.evaluations, seconds=time.perf_counter() - t0,
-                     mae=mae)
+                     cost_final=prob.cost(w), evaluations=prob.evaluations, seconds=time.perf_counter() - t0,
+                     mae=prob.mae(w))
 
 
 def motion_mae(params: MechanismParams, truth: Motion) -> np.ndarray:

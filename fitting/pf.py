@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fitting.optimize import NOISE_SD, REJECTED, Motion, _ball, _stderr_progress, dense_grid, two_stage
+from fitting.optimize import NOISE_SD, Motion, MotionFit, _ball, _stderr_progress, dense_grid, two_stage
 from models.mechanism.params import N_LINKS, LINK_SIZE, MechanismParams
 from models.mechanism.solver import Mechanism, pf_sensitivities, quick_pf_sweep
 from toolkit.errors import AssemblyError, KneeInputError
@@ -54,11 +54,12 @@ def _tangent_basis(n):
     return np.column_stack([e1, np.cross(n, e1)])  # (3, 2)
 
 
-class PFFit:
+class PFFit(MotionFit):
     """The PF fitting problem (see the module docstring). ``params`` holds the fitted TF group and the
     PF first estimate; ``motion`` needs ``pf``."""
 
     n_var = 17
+    n_deg = 3  # PF flexion, tilt, rotation; then the three translations
 
     def __init__(self, params: MechanismParams, motion: Motion, weights=None):
         if not params.has_pf:
@@ -126,21 +127,9 @@ class PFFit:
         r = self._solve(w)
         return r["pf"][self.index], r["ok"]
 
-    @staticmethod
-    def _units(d):
-        d = np.array(d, copy=True)
-        d[:, :3] = np.degrees(d[:, :3])
-        return d
-
-    def residuals(self, w) -> np.ndarray:
+    def _compared(self, w):
         pf, ok = self.model_motion(w)
-        if not ok:
-            return np.full(6 * len(self.alphas), REJECTED)
-        return (self._units(pf - self.motion.pf) * self.weights).ravel()
-
-    def cost(self, w) -> float:
-        r = self.residuals(w)
-        return float(r @ r)
+        return pf, self.motion.pf, ok
 
     def jacobian(self, w) -> np.ndarray:
         r = self._solve(w)
@@ -148,9 +137,7 @@ class PFFit:
             return np.zeros((6 * len(self.alphas), self.n_var))
         p, D = self._maps(w)
         sens = pf_sensitivities(p, self.kinds, r["Z"][self.index], self.alphas)
-        dq = sens.d_params[:, 6:12, :].copy()
-        dq[:, :3, :] = np.degrees(dq[:, :3, :])
-        dq *= self.weights[None, :, None]
+        dq = self._units(sens.d_params[:, 6:12, :])
         return dq.reshape(-1, p.size) @ D
 
 
@@ -176,7 +163,5 @@ def fit_pf(params: MechanismParams, motion: Motion, seed: int = 0, global_stage:
                           "PF fit")
     if not prob.model_motion(w)[1]:
         raise KneeInputError("no PF candidate within the bounds assembles over the measured range")
-    r = prob.residuals(w)
-    mae = np.abs(r.reshape(-1, 6) / prob.weights).mean(axis=0)
-    return PFFitResult(params=prob.params(w), w=w, cost_first=c0, cost_global=cg, cost_final=float(r @ r),
-                       evaluations=prob.evaluations, seconds=time.perf_counter() - t0, mae=mae)
+    return PFFitResult(params=prob.params(w), w=w, cost_first=c0, cost_global=cg, cost_final=prob.cost(w),
+                       evaluations=prob.evaluations, seconds=time.perf_counter() - t0, mae=prob.mae(w))

@@ -27,7 +27,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +35,7 @@ import numpy as np
 from fitting.frames import FIDUCIALS, FRAME_FUNCTIONS, check_consistent
 from fitting.isometric import isometric_fibre
 from fitting.optimize import Motion, fit_tf, noise_weights
-from fitting.pf import fit_pf, pf_noise_weights
+from fitting.pf import fit_pf
 from fitting.subject import LIGAMENTS, Subject, load_subject
 from models.mechanism.params import InitialPose, Link, MechanismParams, PFGroup, load_model, save_toml
 from models.mechanism.solver import Mechanism, quick_tf_sweep
@@ -362,8 +362,6 @@ def run_fit(subject_dir, out_dir, seed: int = 0, global_stage: bool = True, prog
     tf_fit = fit_tf(first, motion, seed=seed, global_stage=global_stage, popsize=pop, maxiter=gens,
                     progress=part(0.05, 0.5 if subject.has_pf else 0.95), weights=noise_weights())
     t_tf = time.perf_counter() - t0
-    from dataclasses import replace
-
     # the fitted geometry's own assembly at the first frame selects its branch from now on
     tf_model, _, ok, _ = quick_tf_sweep(tf_fit.params.to_vector(), tf_fit.params.kinds, motion.tf[0, 1:],
                                         motion.flexion[:1])

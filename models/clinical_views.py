@@ -10,7 +10,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 import trimesh
 
-from models.contact import CARTILAGE, condyle_cap, foundation, hertz
+from models.contact import CARTILAGE, contact_loads
 from models.gait import GaitResult
 from models.mechanism.solver import Mechanism
 from models.phantom import build_phantom
@@ -28,11 +28,12 @@ def _colours(values, vmax):
 
 def _vertex_values(cap: trimesh.Trimesh, face_values):
     """(n, faces) -> (n, vertices), each vertex the mean of its faces."""
-    nv = len(cap.vertices)
-    inc = np.zeros((len(cap.faces), nv))
-    np.add.at(inc, (np.repeat(np.arange(len(cap.faces)), 3), cap.faces.ravel()), 1.0)
-    inc /= np.maximum(inc.sum(axis=0, keepdims=True), 1)
-    return face_values @ inc
+    import scipy.sparse as sp
+
+    nf, nv = len(cap.faces), len(cap.vertices)
+    inc = sp.csr_matrix((np.ones(3 * nf), (np.repeat(np.arange(nf), 3), cap.faces.ravel())), shape=(nf, nv))
+    count = np.asarray(inc.sum(axis=0)).ravel()
+    return np.asarray(inc.T @ np.asarray(face_values).T).T / np.maximum(count, 1)
 
 
 def _align_minus_z(d):
@@ -169,19 +170,10 @@ def contact_vs_flexion(mech: Mechanism, load: float = 700.0, flexion_deg=None, c
         flexion_deg = np.arange(max(0.0, math.ceil(lo)), min(120.0, math.floor(hi)) + 1e-9, 5.0)
     fl = np.asarray(flexion_deg, float)
     st = solve_statics(mech, np.radians(fl), [0.0, load, 0.0])
-    out = {"flexion_deg": fl, "statics": st, "contacts": {}}
-    for lk in mech.params.links:
-        if lk.role != "contact":
-            continue
-        comp = np.maximum(-st.force(lk.name), 0.0)
-        surf = "plane" if lk.kind == "sphere-plane" else lk.tibia_surface
-        rf = lk.femur_radius or 24.0
-        hz = hertz(comp, rf, lk.tibia_radius, surf, cartilage, cartilage)
-        cap = condyle_cap(rf, subdivisions=5)
-        ef = [foundation(f, rf, lk.tibia_radius, surf, cap, cartilage) for f in comp]
-        out["contacts"][lk.name] = {"force": comp, "hertz": hz, "ef_area": np.array([e.area for e in ef]),
-                                    "ef_peak": np.array([e.peak for e in ef])}
-    return out
+    contacts = contact_loads(mech.params, st, cartilage)
+    return {"flexion_deg": fl, "statics": st,
+            "contacts": {k: {"force": c["force"], "hertz": c["hertz"], "ef_area": c["foundation_area"],
+                             "ef_peak": c["foundation_peak"]} for k, c in contacts.items()}}
 
 
 def plot_contact(res: dict, path, title: str = "") -> None:

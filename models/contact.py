@@ -25,6 +25,7 @@ Units: N, mm, MPa (N/mm^2); areas mm^2.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -106,9 +107,11 @@ def hertz(force, r_femur, r_tibia, surface, femur: Cartilage = CARTILAGE, tibia:
 # Elastic foundation
 
 
+@functools.lru_cache(maxsize=16)
 def condyle_cap(r_femur: float, half_angle_deg: float = 40.0, subdivisions: int = 6) -> trimesh.Trimesh:
     """The femoral articular surface of a contact in its local frame: the cap of a sphere of radius
-    ``r_femur`` centred at the origin facing -z (toward the tibia, which lies along -z)."""
+    ``r_femur`` centred at the origin facing -z (toward the tibia, which lies along -z). Cached: treat the
+    returned mesh as read-only."""
     s = trimesh.creation.icosphere(subdivisions, r_femur)
     c = s.triangles_center
     keep = -c[:, 2] / np.linalg.norm(c, axis=1) > math.cos(math.radians(half_angle_deg))
@@ -133,21 +136,27 @@ class FoundationResult:
 
 def _tibial_depth(centres, r_femur, r_tibia, surface, approach):
     """Depth (mm) of points of the femoral cap (centre at the origin, tibia along -z) inside the tibial
-    surface, and the unit normal of the tibial surface at each (pointing toward the femur)."""
+    surface, and the unit normal of the tibial surface at each (pointing toward the femur).
+
+    ``centres`` (F, 3); ``approach`` a scalar or (k,) array: the results are (F,) and (F, 3), or (k, F) and
+    (k, F, 3), vectorised over approaches and points."""
+    ap = np.asarray(approach, float)
+    a = ap.reshape(-1, 1, 1)  # (k, 1, 1)
+    c = np.asarray(centres, float)[None]  # (1, F, 3)
     if surface == "plane":
-        z0 = -r_femur + approach  # the plane sits at z0
-        d = z0 - centres[:, 2]
-        nrm = np.broadcast_to([0.0, 0.0, 1.0], centres.shape)
-        return d, nrm
-    if surface == "convex":
-        ct = np.array([0.0, 0.0, -(r_femur + r_tibia - approach)])
-        v = centres - ct
-        dist = np.linalg.norm(v, axis=1)
-        return r_tibia - dist, v / dist[:, None]
-    ct = np.array([0.0, 0.0, r_tibia - r_femur + approach])  # concave: the femur sits inside the tibial sphere
-    v = centres - ct
-    dist = np.linalg.norm(v, axis=1)
-    return dist - r_tibia, -v / dist[:, None]
+        d = (-r_femur + a[..., 0]) - c[..., 2]
+        nrm = np.broadcast_to([0.0, 0.0, 1.0], d.shape + (3,))
+    else:
+        zc = -(r_femur + r_tibia - a) if surface == "convex" else (r_tibia - r_femur + a)  # tibial centre z
+        v = c - np.concatenate([np.zeros(a.shape[:1] + (1, 2)), zc], axis=2)
+        dist = np.linalg.norm(v, axis=2)
+        if surface == "convex":
+            d, nrm = r_tibia - dist, v / dist[..., None]
+        else:  # concave: the femur sits inside the tibial sphere
+            d, nrm = dist - r_tibia, -v / dist[..., None]
+    if ap.ndim == 0:
+        return d[0], nrm[0]
+    return d, nrm
 
 
 def foundation_force(mesh: trimesh.Trimesh, r_femur, r_tibia, surface, approach, cartilage: Cartilage = CARTILAGE):
@@ -189,3 +198,46 @@ def foundation_closed_form_approach(force, r_femur, r_tibia, surface, cartilage:
     """Approach of the elastic foundation on a paraboloid (small contact): F = pi K R* delta^2."""
     Rs = effective_radius(r_femur, r_tibia, surface)
     return np.sqrt(np.maximum(np.asarray(force, float), 0.0) / (math.pi * cartilage.foundation_modulus * Rs))
+
+
+def foundation_maps(forces, r_femur, r_tibia, surface, cartilage: Cartilage = CARTILAGE, mesh=None,
+                    n_table: int = 160) -> dict:
+    """The elastic foundation for many compressive loads (N, (n,)) at once: the net force is tabulated
+    against the approach once (vectorised over approaches and faces), the approach of each load
+    interpolated, and the face pressures computed for every load together.
+
+    Returns ``{"approach" (n,), "pressure" (n, faces), "area" (n,), "peak" (n,), "cap": mesh}``."""
+    effective_radius(r_femur, r_tibia, surface)  # validates
+    mesh = mesh if mesh is not None else condyle_cap(r_femur, subdivisions=5)
+    F = np.maximum(np.asarray(forces, float), 0.0)
+    c, A = mesh.triangles_center, mesh.area_faces
+    dl = np.linspace(0.0, 0.15 * r_femur, n_table)
+    d, nrm = _tibial_depth(c, r_femur, r_tibia, surface, dl)
+    table = ((cartilage.foundation_modulus * np.maximum(d, 0.0) * A) * nrm[..., 2]).sum(axis=1)
+    if F.size and F.max() > table[-1]:
+        raise KneeInputError(f"elastic foundation: {F.max():.0f} N exceeds what the articular mesh carries "
+                             f"({table[-1]:.0f} N)")
+    appr = np.interp(F, table, dl)
+    p = cartilage.foundation_modulus * np.maximum(_tibial_depth(c, r_femur, r_tibia, surface, appr)[0], 0.0)
+    return {"approach": appr, "pressure": p, "area": (p > 0) @ A, "peak": p.max(axis=1), "cap": mesh}
+
+
+def contact_loads(params, statics, cartilage: Cartilage = CARTILAGE, foundation: bool = True) -> dict:
+    """Per condylar contact of ``params``: the compressive force from a statics result (N, (n,)), Hertz, and
+    (with ``foundation``) the elastic-foundation maps of :func:`foundation_maps`."""
+    out = {}
+    for lk in params.links:
+        if lk.role != "contact":
+            continue
+        if lk.femur_radius is None:
+            raise KneeInputError(f"contact {lk.name} of {params.name} has no femur_radius; contact mechanics needs "
+                                 "the condyle radius")
+        comp = np.maximum(-statics.force(lk.name), 0.0)
+        surf = "plane" if lk.kind == "sphere-plane" else lk.tibia_surface
+        entry = {"force": comp, "hertz": hertz(comp, lk.femur_radius, lk.tibia_radius, surf, cartilage, cartilage)}
+        if foundation:
+            m = foundation_maps(comp, lk.femur_radius, lk.tibia_radius, surf, cartilage)
+            entry.update({"foundation_pressure": m["pressure"], "foundation_peak": m["peak"],
+                          "foundation_area": m["area"], "cap": m["cap"]})
+        out[lk.name] = entry
+    return out

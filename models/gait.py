@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from models.contact import CARTILAGE, Cartilage, condyle_cap, foundation_force, hertz
+from models.contact import CARTILAGE, Cartilage, contact_loads
 from models.mechanism.solver import Mechanism
 from models.statics import StaticsResult, solve_statics
 from toolkit.conventions import joint_to_pose
@@ -292,16 +292,6 @@ def _rates(t, x):
     return np.gradient(x, t, axis=0), np.gradient(np.gradient(x, t, axis=0), t, axis=0)
 
 
-def foundation_table(r_femur, r_tibia, surface, cartilage: Cartilage = CARTILAGE, n: int = 160, cap=None):
-    """The elastic foundation's force against approach, tabulated once per contact (vectorised over faces
-    and approaches), so per-frame maps need only an interpolation. Returns (approaches, forces, cap)."""
-    cap = cap if cap is not None else condyle_cap(r_femur, subdivisions=5)
-    dmax = 0.15 * r_femur
-    dl = np.linspace(0.0, dmax, n) ** 1.0
-    forces = np.array([foundation_force(cap, r_femur, r_tibia, surface, d, cartilage)[0][2] for d in dl])
-    return dl, forces, cap
-
-
 def analyse_gait(mech: Mechanism, trial: GaitTrial, anthro: Anthropometry | None = None,
                  cartilage: Cartilage = CARTILAGE, ankle_in_tibia=None, foundation: bool = True,
                  hip_in_femur=None) -> GaitResult:
@@ -370,30 +360,7 @@ def analyse_gait(mech: Mechanism, trial: GaitTrial, anthro: Anthropometry | None
     F = -fk[:, :3]
     M = -fk[:, 3:] * 1e3
     st = solve_statics(mech, trial.knee, F, M)
-    contact = {}
-    for lk in mech.params.links:
-        if lk.role != "contact":
-            continue
-        comp = np.maximum(-st.force(lk.name), 0.0)
-        surf = "plane" if lk.kind == "sphere-plane" else lk.tibia_surface
-        rf = lk.femur_radius or 24.0
-        rt = lk.tibia_radius
-        hz = hertz(comp, rf, rt, surf, cartilage, cartilage)
-        entry = {"force": comp, "hertz": hz}
-        if foundation:
-            dl, ftab, cap = foundation_table(rf, rt, surf, cartilage)
-            if comp.max() > ftab[-1]:
-                raise KneeInputError(f"contact {lk.name}: {comp.max():.0f} N exceeds what the articular cap carries")
-            appr = np.interp(comp, ftab, dl)
-            from models.contact import _tibial_depth
-
-            c = cap.triangles_center
-            depth = np.stack([_tibial_depth(c, rf, rt, surf, d)[0] for d in appr])  # (n, faces)
-            p = cartilage.foundation_modulus * np.maximum(depth, 0.0)
-            area = (p > 0) @ cap.area_faces
-            entry.update({"foundation_pressure": p, "foundation_peak": p.max(axis=1), "foundation_area": area,
-                          "cap": cap})
-        contact[lk.name] = entry
+    contact = contact_loads(mech.params, st, cartilage, foundation)
     flags = [f"t = {t[k]:.3f} s: {'; '.join(st.flags[k])}" for k in range(n) if st.flags[k]]
     return GaitResult(trial=trial, knee_force=F, knee_moment=M, statics=st, contact=contact, poses=poses, tau=tau,
                       tf=kin["tf"], pf=kin["pf"], flags=flags, seconds=time.perf_counter() - t0)

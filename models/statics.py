@@ -143,22 +143,32 @@ def solve_statics(mech: Mechanism, flexion, force_tibia, moment_tibia=None) -> S
             u[:, i] *= -1.0
     names = [lk.name for lk in mech.params.links] + ["tendon"]
     roles = [lk.role for lk in mech.params.links] + ["tendon"]
-    flags = []
-    for k in range(n):
-        f = []
-        if not np.isfinite(cond[k]) or cond[k] > 1e8:
-            f.append(f"near-singular equilibrium (condition {cond[k]:.3g})")
-        for j, (nm, rl) in enumerate(zip(names, roles)):
-            v = forces[k, j]
-            if rl == "ligament" and v < -FORCE_TOL:
-                f.append(f"{nm} would have to push ({v:.1f} N)")
-            if rl == "tendon" and v < -FORCE_TOL:
-                f.append(f"tendon would have to push ({v:.1f} N): the load needs a knee flexor, not in the model")
-            if rl == "contact" and v > FORCE_TOL:
-                f.append(f"contact {nm} would have to pull ({v:.1f} N)")
-        lig = [j for j, rl in enumerate(roles) if rl == "ligament"]
-        if lig and np.all(forces[k, lig] <= FORCE_TOL):
-            f.append("every ligament is slack or pushing")
-        flags.append(f)
+    flags = _flags(forces, names, roles, cond)
     return StaticsResult(flexion=al, names=names, roles=roles, forces=forces, directions=u, points=b,
                          condition=cond, flags=flags)
+
+
+def _flags(forces, names, roles, cond) -> list[list[str]]:
+    """Per angle, the members loaded the wrong way (detected with array masks; text only where flagged)."""
+    roles = np.asarray(roles)
+    lig, con, ten = roles == "ligament", roles == "contact", roles == "tendon"
+    push = (forces < -FORCE_TOL) & (lig | ten)
+    pull = (forces > FORCE_TOL) & con
+    slack = np.all(forces[:, lig] <= FORCE_TOL, axis=1) if lig.any() else np.zeros(len(forces), bool)
+    singular = ~np.isfinite(cond) | (cond > 1e8)
+    out = [[] for _ in range(len(forces))]
+    for k in np.nonzero(push.any(axis=1) | pull.any(axis=1) | slack | singular)[0]:
+        f = out[k]
+        if singular[k]:
+            f.append(f"near-singular equilibrium (condition {cond[k]:.3g})")
+        for j in np.nonzero(push[k] | pull[k])[0]:
+            v = forces[k, j]
+            if lig[j]:
+                f.append(f"{names[j]} would have to push ({v:.1f} N)")
+            elif ten[j]:
+                f.append(f"tendon would have to push ({v:.1f} N): the load needs a knee flexor, not in the model")
+            else:
+                f.append(f"contact {names[j]} would have to pull ({v:.1f} N)")
+        if slack[k]:
+            f.append("every ligament is slack or pushing")
+    return out

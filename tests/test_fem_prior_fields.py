@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from models.fem.fields import MappedTargets, affine_point_map, mapped_links
+from models.fem.fields import MappedSprings, MappedTargets, affine_point_map
 from models.fem.scene import build_association_model
 
 
@@ -36,8 +36,7 @@ def test_target_and_link_springs_are_consistent(model, volunteer):
     np.testing.assert_allclose((tg.matrix() @ p.ravel()).reshape(-1, 3), tg.apply(p), atol=1e-9)
     a = affine_point_map(model.femur, np.array([volunteer.params.link("acl").femur]))
     b = affine_point_map(model.tibia, np.array([[10.0, -5.0, 0.0]]))
-    L0 = np.linalg.norm(b.apply(x0) - a.apply(x0), axis=1)
-    links = mapped_links(a, b, L0, k=1000.0)
+    links = MappedSprings(model.grid, a.apply(x0), b.apply(x0), k=1000.0, maps=(a, b))
     assert np.abs(links.forces(x0)).max() < 1e-9  # at rest length: no force
     x1, _ = _rigid(x0, 40.0)
     assert np.abs(links.forces(x1)).max() < 1e-6  # a rigid motion keeps every length
@@ -65,3 +64,11 @@ def test_prescribed_nodes_move_exactly_and_rebase_makes_the_state_force_free(vol
     for _ in range(3):
         model.solver.step()
     assert knee_angles(model)[0] == pytest.approx(60.0, abs=1.0)
+
+
+def test_unknown_comparison_method_is_refused(volunteer):
+    from models.fem.prior_case import run_method
+    from toolkit.errors import KneeInputError
+
+    with pytest.raises(KneeInputError, match="method must be one of paper, init, links, kinematics"):
+        run_method("magic", volunteer, volunteer, 60.0)

@@ -1,6 +1,5 @@
 """The Pinocchio lower-limb chain, inverse dynamics and the gait analysis."""
 
-import math
 import subprocess
 import sys
 
@@ -8,8 +7,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from models.gait import (Anthropometry, GaitTrial, _quaternions, analyse_gait, build_limb, knee_kinematics,
-                         normative_trial, read_gait_csv)
+from models.gait import (Anthropometry, GaitTrial, _quaternions, analyse_gait, knee_kinematics, normative_trial,
+                         read_gait_csv)
 from toolkit.conventions import invert_poses, joint_to_pose
 from toolkit.errors import AssemblyError, KneeInputError
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from toolkit.conventions import cardan_to_matrix, joint_to_pose
+from toolkit.conventions import cardan_to_matrix
 from toolkit.errors import KneeInputError
 from toolkit.geometry import fit_plane, fit_sphere, least_varying_pair, principal_axes, rigid_register
 

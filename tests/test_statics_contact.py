@@ -130,3 +130,21 @@ def test_contact_along_flexion_is_plausible(volunteer):
     r = hertz(-st.force("lc"), lc.femur_radius, lc.tibia_radius, lc.tibia_surface)
     assert np.all((r.area > 20) & (r.area < 2000)) and np.all((r.peak > 0.3) & (r.peak < 20))
     assert effective_modulus() == pytest.approx(5.0 / (2 * (1 - 0.45 ** 2)))
+
+
+@pytest.mark.parametrize("surface,rt", [("convex", 55.0), ("concave", 55.0)])
+def test_tabulated_foundation_maps_match_the_root_solve(surface, rt):
+    """The vectorised maps (force tabulated against approach, interpolated) agree with Brent's solve per load."""
+    from models.contact import foundation_maps
+
+    cap = condyle_cap(24.0, subdivisions=5)
+    loads = np.array([0.0, 150.0, 700.0, 1900.0])
+    m = foundation_maps(loads, 24.0, rt, surface, mesh=cap)
+    for k, F in enumerate(loads):
+        r = foundation(F, 24.0, rt, surface, cap)
+        assert m["approach"][k] == pytest.approx(r.approach, rel=5e-3, abs=1e-9)
+        assert m["peak"][k] == pytest.approx(r.peak, rel=5e-3, abs=1e-9)
+        net, _ = foundation_force(cap, 24.0, rt, surface, m["approach"][k])
+        assert net[2] == pytest.approx(F, rel=1e-2, abs=1e-9)
+    with pytest.raises(KneeInputError, match="exceeds"):
+        foundation_maps([1e7], 24.0, rt, surface, mesh=cap)

@@ -35,6 +35,14 @@ def default_camera(distance: float = 350.0, azimuth_deg: float = 35.0, elevation
     return Camera.looking_at(t + distance * d, t, up=(0.0, 1.0, 0.0))
 
 
+def truth_phantom(mech: Mechanism, settings: FemSettings | None = None):
+    """The phantom of the parameter set that generates a case's truth, built like the model's."""
+    from models.phantom import build_phantom
+
+    s = settings or FemSettings()
+    return build_phantom(mech.params, shaft_length=s.shaft_length, cartilage=s.cartilage)
+
+
 @dataclass
 class TargetPoints:
     """Bone surface points to evaluate, in each bone's rest position (the model's extension)."""
@@ -88,13 +96,7 @@ def run_standard_case(mech: Mechanism, flexion_deg: float = 90.0, camera: Camera
     model = model or build_association_model(mech, settings)
     ph = model.phantom
     tmech = truth or mech
-    if truth is not None:
-        from models.phantom import build_phantom
-
-        s_ = model.settings
-        ph_true = build_phantom(truth.params, shaft_length=s_.shaft_length, cartilage=s_.cartilage)
-    else:
-        ph_true = ph
+    ph_true = ph if truth is None else truth_phantom(truth, model.settings)
     tf, pf, _ = tmech.solve(np.radians(flexion_deg))
     T_true = joint_to_pose(tf)
     skin_true = ph_true.skin(T_true, joint_to_pose(pf) if tmech.has_pf else None)

@@ -80,6 +80,25 @@ def tet_stiffness(X: np.ndarray, cells: np.ndarray, D: np.ndarray) -> np.ndarray
     return np.abs(vol)[:, None, None] * np.einsum("eki,kl,elj->eij", B, D, B)
 
 
+def _hex_jacobians(Xe: np.ndarray):
+    """Natural-coordinate derivatives dxi (8 gauss, 8 nodes, 3) and the Jacobians (E, 8, 3, 3) of
+    trilinear hexahedra at the 2x2x2 Gauss points."""
+    g = _GAUSS
+    c = HEX_CORNERS
+    # dN/dxi at Gauss point q for node a: c_a,k/8 * prod_{j != k} (1 + c_a,j xi_q,j)
+    t = 1.0 + c[None, :, :] * g[:, None, :]  # (q, a, 3)
+    dxi = np.empty((8, 8, 3))
+    dxi[..., 0] = c[None, :, 0] * t[..., 1] * t[..., 2] / 8
+    dxi[..., 1] = c[None, :, 1] * t[..., 0] * t[..., 2] / 8
+    dxi[..., 2] = c[None, :, 2] * t[..., 0] * t[..., 1] / 8
+    return dxi, np.einsum("qak,eaj->eqkj", dxi, Xe)  # J[k, j] = d x_j / d xi_k
+
+
+def hex_inverted(Xe: np.ndarray) -> np.ndarray:
+    """(E,) bool: hexahedra (E, 8, 3) with a non-positive Jacobian at any Gauss point."""
+    return np.any(np.linalg.det(_hex_jacobians(Xe)[1]) <= 0, axis=1)
+
+
 def hex_gradients(Xe: np.ndarray):
     """Shape-function gradients at the 2x2x2 Gauss points of trilinear hexahedra.
 
@@ -91,15 +110,7 @@ def hex_gradients(Xe: np.ndarray):
     -------
     dN : (E, 8 gauss, 8 nodes, 3) float and detJ : (E, 8) float
     """
-    g = _GAUSS
-    c = HEX_CORNERS
-    # dN/dxi at Gauss point q for node a: c_a,k/8 * prod_{j != k} (1 + c_a,j xi_q,j)
-    t = 1.0 + c[None, :, :] * g[:, None, :]  # (q, a, 3)
-    dxi = np.empty((8, 8, 3))
-    dxi[..., 0] = c[None, :, 0] * t[..., 1] * t[..., 2] / 8
-    dxi[..., 1] = c[None, :, 1] * t[..., 0] * t[..., 2] / 8
-    dxi[..., 2] = c[None, :, 2] * t[..., 0] * t[..., 1] / 8
-    J = np.einsum("qak,eaj->eqkj", dxi, Xe)  # J[k, j] = d x_j / d xi_k
+    dxi, J = _hex_jacobians(Xe)
     detJ = np.linalg.det(J)
     if np.any(detJ <= 0):
         raise KneeInputError("inverted or degenerate hexahedron (non-positive Jacobian) in the grid")
@@ -112,14 +123,6 @@ def hex_stiffness(X: np.ndarray, cells: np.ndarray, D: np.ndarray) -> np.ndarray
     dN, detJ = hex_gradients(X[cells])
     B = _b_matrix(dN)  # (E, q, 6, 24)
     return np.einsum("eq,eqki,kl,eqlj->eij", detJ, B, D, B)
-
-
-def _hex_ok(xe: np.ndarray) -> bool:
-    try:
-        hex_gradients(xe[None])
-        return True
-    except KneeInputError:
-        return False
 
 
 def _frames(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -194,11 +197,7 @@ class CorotationalElements:
             vol = np.einsum("ij,ij->i", np.cross(xe[:, 1] - xe[:, 0], xe[:, 2] - xe[:, 0]), xe[:, 3] - xe[:, 0])
             ok = vol > 1e-9 * np.abs(vol).max()
         else:
-            ok = np.ones(len(self.cells), bool)
-            try:
-                hex_gradients(xe)
-            except KneeInputError:
-                ok = np.array([_hex_ok(e) for e in xe])  # rare: find the inverted ones
+            ok = ~hex_inverted(xe)
         stiff = tet_stiffness if self.kind == "tet" else hex_stiffness
         K = self.K.copy()
         K[ok] = stiff(x, self.cells[ok], self._D) * self._w[ok, None, None]

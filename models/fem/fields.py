@@ -94,13 +94,14 @@ class MappedSprings:
     when stretched, which keeps it positive semi-definite).
     """
 
-    def __init__(self, grid, a, b, k=1000.0, rest_length=None):
+    def __init__(self, grid, a, b, k=1000.0, rest_length=None, maps=None):
+        """``maps``: ``(ma, mb)`` mappings to use instead of embedding ``a`` and ``b`` in grid cells (for
+        points attached to a bone, :func:`affine_point_map`); ``a``, ``b`` still give the rest length."""
         a, b = np.atleast_2d(a), np.atleast_2d(b)
-        self.ma, self.mb = TrilinearMapping(grid, a), TrilinearMapping(grid, b)
+        self.ma, self.mb = maps if maps is not None else (TrilinearMapping(grid, a), TrilinearMapping(grid, b))
         self.k = float(k)
         self.L0 = np.linalg.norm(b - a, axis=1) if rest_length is None else np.atleast_1d(rest_length)
         self._K = np.zeros((len(a), 3, 3))
-        self.n = grid.n_nodes
 
     def forces(self, x):
         pa, pb = self.ma.apply(x), self.mb.apply(x)
@@ -137,8 +138,7 @@ class MappedPenaltyContact:
         self.k, self.distance = float(k), float(distance)
         # activation distance per point of A: 10 mm, or its rest distance to B if closer (bones that
         # touch at rest are force-free at rest)
-        d0, _ = cKDTree(np.atleast_2d(points_b)).query(np.atleast_2d(points_a))
-        self.reach = np.minimum(self.distance, d0)
+        self.rebase(None, np.atleast_2d(points_a), np.atleast_2d(points_b))
         self._pairs = (np.zeros(0, int), np.zeros(0, int))
         self._nrm = np.zeros((0, 3))
         self.active = 0
@@ -159,9 +159,12 @@ class MappedPenaltyContact:
         np.add.at(fb, j, -mag[:, None] * nrm)
         return self.ma.apply_transpose(fa) + self.mb.apply_transpose(fb)
 
-    def rebase(self, x) -> None:
-        """Take the activation distances from positions ``x`` (bones that touch there are force-free)."""
-        d0, _ = cKDTree(self.mb.apply(x)).query(self.ma.apply(x))
+    def rebase(self, x, pa=None, pb=None) -> None:
+        """Take the activation distances from grid positions ``x`` (or the points ``pa``, ``pb`` directly):
+        bones that touch there are force-free."""
+        pa = self.ma.apply(x) if pa is None else pa
+        pb = self.mb.apply(x) if pb is None else pb
+        d0, _ = cKDTree(pb).query(pa)
         self.reach = np.minimum(self.distance, d0)
 
     def _dmat(self):
@@ -236,14 +239,3 @@ class MappedTargets:
 
     def matrix(self):
         return (self.k * (self.map.J3.T @ self.map.J3)).tocsr()
-
-
-def mapped_links(ma, mb, rest_length, k=1000.0) -> MappedSprings:
-    """Distance springs between points of two mappings (e.g. the mechanism's links between femur and tibia)."""
-    s = MappedSprings.__new__(MappedSprings)
-    s.ma, s.mb = ma, mb
-    s.k = float(k)
-    s.L0 = np.atleast_1d(np.asarray(rest_length, float))
-    s._K = np.zeros((len(s.L0), 3, 3))
-    s.n = ma.J.shape[1]
-    return s

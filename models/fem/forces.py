@@ -19,7 +19,6 @@ provide their stiffness (k J^T J over the active points) to the implicit solve.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from models.fem.mapping import TrilinearMapping

@@ -27,9 +27,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from models.fem.case import default_camera, run_standard_case, target_points
-from models.fem.depth import DepthNoise, backproject, icp, render_depth
-from models.fem.fields import affine_point_map, mapped_links
+from models.fem.case import default_camera, run_standard_case, target_points, truth_phantom
+from models.fem.depth import DepthNoise, backproject, render_depth
+from models.fem.fields import MappedSprings, affine_point_map
 from models.fem.forces import SurfaceForces
 from models.fem.mapping import TrilinearMapping
 from models.fem.scene import AssociationModel, build_association_model, knee_angles
@@ -104,32 +104,18 @@ def link_springs(model: AssociationModel, prior: Mechanism, k: float = 1000.0):
     T0 = joint_to_pose(prior.motion_at(np.array([0.0]))[0][0])
     a = np.vstack([lk.femur for lk in prior.params.links])
     b = transform_points(T0, np.vstack([lk.tibia for lk in prior.params.links]))
-    ma, mb = affine_point_map(model.femur, a), affine_point_map(model.tibia, b)
-    return mapped_links(ma, mb, [lk.length for lk in prior.params.links], k)
+    maps = (affine_point_map(model.femur, a), affine_point_map(model.tibia, b))
+    return MappedSprings(model.grid, a, b, k, rest_length=[lk.length for lk in prior.params.links], maps=maps)
 
 
-def _depth_points(truth: Mechanism, flexion_deg, camera, noise, seed):
-    ph = build_truth_phantom(truth)
+def _depth_points(truth: Mechanism, flexion_deg, camera, noise, seed, settings=None):
+    ph = truth_phantom(truth, settings)
     tf, pf, _ = truth.solve(math.radians(flexion_deg))
     skin = ph.skin(joint_to_pose(tf), joint_to_pose(pf) if truth.has_pf else None)
     depth = render_depth(skin.vertices, skin.faces, camera)
     if noise is not None:
         depth = noise.apply(depth, np.random.default_rng(seed))
     return backproject(depth, camera.K, camera.T_world_cam), tf
-
-
-_PHANTOMS: dict = {}
-
-
-def build_truth_phantom(mech: Mechanism):
-    from models.fem.scene import FemSettings
-    from models.phantom import build_phantom
-
-    key = id(mech)
-    if key not in _PHANTOMS:
-        s = FemSettings()
-        _PHANTOMS[key] = build_phantom(mech.params, shaft_length=s.shaft_length, cartilage=s.cartilage)
-    return _PHANTOMS[key]
 
 
 def _evaluate(model, prior, truth_tf, x=None, T_femur=None, T_tibia=None, T_world=None):
@@ -170,7 +156,7 @@ def run_method(method: str, truth: Mechanism, prior: Mechanism, flexion_deg: flo
                             r.converged)
     model = model or build_association_model(prior)
     t0 = time.perf_counter()  # the model is built once per prior, outside the per-case time
-    pts, truth_tf = _depth_points(truth, flexion_deg, cam, noise, seed)
+    pts, truth_tf = _depth_points(truth, flexion_deg, cam, noise, seed, model.settings)
     notes = []
     est = estimate_flexion(prior, model.phantom, pts)
     notes += est.warnings
@@ -194,7 +180,7 @@ def run_method(method: str, truth: Mechanism, prior: Mechanism, flexion_deg: flo
     skin_prev = surf.map.apply(s.x)
     calm, converged = 0, False
     for k in range(max_steps):
-        info = s.step()
+        s.step()
         steps += 1
         if not np.all(np.isfinite(s.x)):
             raise KneeInputError(f"the FEM diverged at step {steps} (non-finite positions)")

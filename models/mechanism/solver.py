@@ -527,7 +527,6 @@ class Mechanism:
                                 f"{math.degrees(al[0]):.2f} deg is outside the assembly range "
                                 f"{lo:.2f} to {hi:.2f} deg of {self.params.name}; nothing solved", None)
         sw = self.backend.sweep
-        n = al.size
         start = self._nearest(al[0])
         self._claim(sw)
         states, diags = _run_chunks(sw, start, al)
@@ -608,18 +607,18 @@ class Mechanism:
             modes.sort(key=lambda m: float(np.abs(m - on).max() > 1e-6))
         return modes
 
-    def motion_at(self, flexion, max_step: float = math.radians(1.0)):
-        """TF and PF joint coordinates ``(tf (n, 6), pf (n, 6))`` at angles in any order or spacing (rad):
-        swept along :func:`dense_grid`, so far-apart or unordered angles (gait frames, coarse tables) stay on
-        the branch. Raises :class:`AssemblyError` when an angle is outside the assembly range."""
+    def motion_at(self, flexion):
+        """TF and PF joint coordinates ``(tf (n, 6), pf (n, 6))`` at angles in any order (rad): the distinct
+        angles are swept in increasing order (the sweep subdivides large steps) and the rows returned in
+        the order asked. Raises :class:`AssemblyError` when an angle is outside the assembly range."""
         al = np.atleast_1d(np.asarray(flexion, dtype=float))
         if al.size == 0 or not np.all(np.isfinite(al)):
             raise KneeInputError("flexion angles must be finite and at least one")
-        grid, idx = dense_grid(al, max_step)
+        grid, idx = np.unique(al, return_inverse=True)
         sw = self.sweep(grid)
         if not sw.complete:
             raise AssemblyError(f"{self.params.name}: {sw.message}")
-        return sw.tf[idx], sw.pf[idx]
+        return sw.tf[idx.ravel()], sw.pf[idx.ravel()]
 
     def sensitivities(self, flexion) -> Sensitivity:
         """Derivatives of the joint coordinates with respect to flexion and to every parameter.
@@ -724,8 +723,7 @@ def quick_pf_sweep(params_vector, kinds, x_ref_guess, psi_ref_guess, alphas, com
             break
     if not abs(float(fn(psi, x_ref, a_ref, p)[0])) < RESIDUAL_TOL:
         return fail
-    k = max(1, int(math.ceil(abs(al[0] - a_ref) / max_step)))
-    lead = np.linspace(a_ref, al[0], k + 1)[1:-1]
+    lead = _subdivide(np.array([a_ref, al[0]]), max_step)[0][1:-1]  # from the reference to the first angle
     path = np.r_[lead, al]
     sw = b.sweep
     sw.owner = None
