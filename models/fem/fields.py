@@ -141,6 +141,7 @@ class MappedPenaltyContact:
         self.rebase(None, np.atleast_2d(points_a), np.atleast_2d(points_b))
         self._pairs = (np.zeros(0, int), np.zeros(0, int))
         self._nrm = np.zeros((0, 3))
+        self._D = self._DT = None
         self.active = 0
 
     def forces(self, x):
@@ -153,6 +154,8 @@ class MappedPenaltyContact:
         nrm = sep / ln[:, None]
         mag = self.k * (self.reach[i] - ln)
         self._pairs, self._nrm, self.active = (i, j), nrm, i.size
+        self._D = self._dmat() if i.size else None  # fixed for this step's solve
+        self._DT = None if self._D is None else self._D.T.tocsr()
         fa = np.zeros_like(pa)
         fb = np.zeros_like(pb)
         np.add.at(fa, i, mag[:, None] * nrm)
@@ -174,13 +177,11 @@ class MappedPenaltyContact:
         return (Ja - Jb).tocsr()
 
     def apply(self, p):
-        i, j = self._pairs
-        if i.size == 0:
+        if self._D is None:
             return np.zeros_like(p)
-        D = self._dmat()
-        dp = D @ p
+        dp = self._D @ p
         g = self.k * np.einsum("si,si->s", self._nrm, dp)[:, None] * self._nrm
-        return D.T @ g
+        return self._DT @ g
 
     def matrix(self):
         i, _ = self._pairs
@@ -199,12 +200,13 @@ class MatrixMapping:
     def __init__(self, J):
         self.J = sp.csr_matrix(J)
         self.J3 = sp.kron(self.J, sp.identity(3, format="csr"), format="csr")
+        self.JT = self.J.T.tocsr()
 
     def apply(self, x):
         return self.J @ np.asarray(x, float)
 
     def apply_transpose(self, f):
-        return self.J.T @ np.asarray(f, float)
+        return self.JT @ np.asarray(f, float)
 
 
 def affine_point_map(bone: "MappedBoneElasticity", points, nearest: int = 12) -> MatrixMapping:

@@ -98,7 +98,9 @@ class SurfaceForces:
 
     def forces(self, x):
         p = self.map.apply(x)
-        d, j = self.tree.query(p)
+        # only neighbours within the reference distance matter: the bound keeps the query short for skin
+        # points far from the cloud (the unseen side)
+        d, j = self.tree.query(p, distance_upper_bound=self.reference)
         self.active = d < self.reference
         self.within_fraction = float(self.active.mean())
         f = np.zeros_like(p)

@@ -6,9 +6,12 @@ One linear solve per step: with C = a M + b K and the forces linearised about th
 
 The matrix is never assembled per step: the conjugate-gradient solve applies the co-rotated element
 stiffnesses directly (gather, element products, scatter), warm-started from the last velocity and
-preconditioned with a sparse LU factorisation of the assembled matrix, which is kept across steps and
-refreshed (assembled on the fixed pattern, refactorised) only when CG needs more than
-``refresh_iterations`` iterations.
+preconditioned with a sparse LU factorisation of the assembled matrix (symmetric mode, minimum-degree
+ordering of A + A^T, single-precision factors: a preconditioner needs no more, and the triangular solves
+read half the memory), warped by the nodes' rotations since it was computed. The factorisation is kept
+across steps and refreshed (assembled on the fixed pattern, refactorised) by an amortised rule: when the
+iterations spent beyond the count right after the last refresh add up to more than the cost of a
+refactorisation (``refresh_cost`` iterations), or when CG stops at ``max_iterations``.
 """
 
 from __future__ import annotations
@@ -43,7 +46,7 @@ class ImplicitEuler:
     """
 
     def __init__(self, x0, mass, fields, dt=0.05, rayleigh_mass=0.1, rayleigh_stiffness=0.1,
-                 tol=1e-5, max_iterations=200, refresh_iterations=25, fixed=None, node_rotations=None):
+                 tol=1e-5, max_iterations=200, refresh_cost=60, fixed=None, node_rotations=None):
         self.x = np.array(x0, dtype=float)
         self.fixed = np.zeros(len(self.x), bool) if fixed is None else np.asarray(fixed, bool)
         self._free = np.repeat(~self.fixed, 3).astype(float)
@@ -52,8 +55,10 @@ class ImplicitEuler:
         self.fields = list(fields)
         self.dt = float(dt)
         self.a, self.b = float(rayleigh_mass), float(rayleigh_stiffness)
-        self.tol, self.max_iterations, self.refresh_iterations = tol, max_iterations, refresh_iterations
+        self.tol, self.max_iterations, self.refresh_cost = tol, max_iterations, refresh_cost
         self._lu = None
+        self._best_iterations = None  # CG iterations of the first step after the last refresh
+        self._excess = 0.0            # iterations spent beyond that since the last refresh
         # node_rotations() -> (N, 3, 3) rotations of the material around each node (for the warped
         # preconditioner W LU^-1 W^T, W = rotations since the last factorisation); None: no warping
         self.node_rotations = node_rotations
@@ -94,23 +99,27 @@ class ImplicitEuler:
         K = sum((f.matrix() for f in self.fields), sp.csr_matrix((3 * len(self.m),) * 2))
         A = (sp.diags(np.repeat(self._cm * self.m, 3)) + self._ck * K).tocsr()
         P = sp.diags(self._free)
-        A = (P @ A @ P + sp.diags(1 - self._free)).tocsc()
-        self._lu = spla.splu(A)
+        A = (P @ A @ P + sp.diags(1 - self._free)).tocsc().astype(np.float32)
+        self._lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                             options={"SymmetricMode": True})
         self._R_ref = None if self.node_rotations is None else self.node_rotations()
+        self._best_iterations, self._excess = None, 0.0
         self.refreshes += 1
+
+    def _lu_solve(self, r):
+        return self._lu.solve(r.astype(np.float32)).astype(float)
 
     def _preconditioner(self, n):
         if self.node_rotations is None:
-            return spla.LinearOperator((n, n), matvec=self._lu.solve)
+            return spla.LinearOperator((n, n), matvec=self._lu_solve, dtype=float)
         W = self.node_rotations() @ np.swapaxes(self._R_ref, 1, 2)  # (N, 3, 3)
         Wt = np.swapaxes(W, 1, 2)
-        lu = self._lu
 
         def apply(r):
-            z = lu.solve((Wt @ r.reshape(-1, 3, 1)).ravel())
+            z = self._lu_solve((Wt @ r.reshape(-1, 3, 1)).ravel())
             return (W @ z.reshape(-1, 3, 1)).ravel()
 
-        return spla.LinearOperator((n, n), matvec=apply)
+        return spla.LinearOperator((n, n), matvec=apply, dtype=float)
 
     def step(self, external=None, prescribed=None) -> StepInfo:
         """One step; ``external(x)`` returns external forces (N, 3) or None.
@@ -136,7 +145,7 @@ class ImplicitEuler:
             rhs = rhs - self._full(vc)
         rhs = rhs.ravel() * self._free
         n = rhs.size
-        A = spla.LinearOperator((n, n), matvec=lambda p: self._operator(p.reshape(-1, 3)).ravel())
+        A = spla.LinearOperator((n, n), matvec=lambda p: self._operator(p.reshape(-1, 3)).ravel(), dtype=float)
         refreshed = False
         if self._lu is None:
             self._refresh()
@@ -149,9 +158,15 @@ class ImplicitEuler:
         M = self._preconditioner(n)
         v, _ = spla.cg(A, rhs, x0=self.v.ravel(), M=M, rtol=self.tol, maxiter=self.max_iterations,
                        callback=count)
-        if its[0] > self.refresh_iterations and not refreshed:
-            self._refresh()
-            refreshed = True
+        if not refreshed:
+            if self._best_iterations is None:
+                self._best_iterations = its[0]
+            self._excess += max(0, its[0] - self._best_iterations)
+            if self._excess > self.refresh_cost or its[0] >= self.max_iterations:
+                self._refresh()
+                refreshed = True
+        elif self._best_iterations is None:
+            self._best_iterations = its[0]
         self.v = v.reshape(-1, 3) + vc
         self.x = x + self.dt * self.v
         self.time += self.dt

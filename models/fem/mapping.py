@@ -46,6 +46,7 @@ class TrilinearMapping:
         self.J = sp.csr_matrix((w.ravel(), (np.repeat(np.arange(len(P)), 8), nodes.ravel())),
                                shape=(len(P), grid.n_nodes))
         self.J3 = sp.kron(self.J, sp.identity(3, format="csr"), format="csr")  # on flattened xyz
+        self.JT = self.J.T.tocsr()
 
     def apply(self, x_grid) -> np.ndarray:
         """Positions of the embedded points, (P, 3), from grid positions (N, 3)."""
@@ -53,4 +54,4 @@ class TrilinearMapping:
 
     def apply_transpose(self, forces) -> np.ndarray:
         """Grid forces (N, 3) equivalent to point forces (P, 3) (virtual work)."""
-        return self.J.T @ np.asarray(forces, float)
+        return self.JT @ np.asarray(forces, float)

@@ -32,7 +32,7 @@ from models.fem.depth import DepthNoise, backproject, render_depth
 from models.fem.fields import MappedSprings, affine_point_map
 from models.fem.forces import SurfaceForces
 from models.fem.mapping import TrilinearMapping
-from models.fem.scene import AssociationModel, build_association_model, knee_angles
+from models.fem.scene import AssociationModel, bone_cell_masks, build_association_model, knee_angles
 from models.mechanism.solver import Mechanism
 from models.prior import estimate_flexion
 from toolkit.conventions import invert_poses, joint_to_pose, transform_points
@@ -55,14 +55,7 @@ class MethodResult:
 
 def bone_cell_nodes(model: AssociationModel):
     """Grid nodes of the cells holding each bone's nodes (nodes shared by both bones excluded)."""
-    g = model.grid
-    out = []
-    for bone in (model.femur, model.tibia):
-        m = np.zeros(g.n_nodes, bool)
-        m[g.cells[np.unique(bone.map.cell)].ravel()] = True
-        out.append(m)
-    both = out[0] & out[1]
-    return out[0] & ~both, out[1] & ~both
+    return bone_cell_masks(model.grid, model.femur, model.tibia)
 
 
 def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: float, increments: int = 6,

@@ -106,6 +106,35 @@ def lumped_mass(grid, bones, soft_density=SOFT_DENSITY, bone_density=BONE_DENSIT
     return m
 
 
+def bone_cell_masks(grid, femur, tibia):
+    """(N,) bool masks of the grid nodes of the cells holding each bone's nodes (nodes of cells holding
+    both bones excluded)."""
+    out = []
+    for bone in (femur, tibia):
+        m = np.zeros(grid.n_nodes, bool)
+        m[grid.cells[np.unique(bone.map.cell)].ravel()] = True
+        out.append(m)
+    both = out[0] & out[1]
+    return out[0] & ~both, out[1] & ~both
+
+
+def node_rotations(grid, soft, femur, tibia, solver):
+    """The rotation of the material around each grid node, for the warped preconditioner: the bone's
+    best-fit rotation for the nodes of a bone's cells (the stiff part of the matrix turns with the bone),
+    elsewhere that of one grid cell around the node."""
+    rep = np.zeros(grid.n_nodes, dtype=np.int64)
+    rep[grid.cells.ravel()] = np.repeat(np.arange(len(grid.cells)), 8)
+    masks = bone_cell_masks(grid, femur, tibia)
+
+    def rotations():
+        R = soft.el.R[rep].copy()
+        for bone, m in zip((femur, tibia), masks):
+            R[m] = best_fit_rotation(bone.el.X, bone.bone_positions(solver.x))
+        return R
+
+    return rotations
+
+
 def build_association_model(mech: Mechanism, settings: FemSettings | None = None) -> AssociationModel:
     """The model of ``mech``'s phantom at full extension (0 deg flexion), in the femur frame."""
     s = settings or FemSettings()
@@ -140,11 +169,9 @@ def build_association_model(mech: Mechanism, settings: FemSettings | None = None
     # the thigh is held (as in a leg holder) around the proximal femoral shaft: grid nodes from one
     # cell below the top of the femur mesh upwards are fixed
     fixed = grid.X[:, 1] >= grid.axes[1][np.searchsorted(grid.axes[1], Xf[:, 1].max()) - 1]
-    # each node's rotation: that of one grid cell around it (for the warped preconditioner)
-    rep = np.zeros(grid.n_nodes, dtype=np.int64)
-    rep[grid.cells.ravel()] = np.repeat(np.arange(len(grid.cells)), 8)
     solver = ImplicitEuler(grid.X, mass, [soft, femur, tibia, springs, contact], s.dt, s.rayleigh_mass,
-                           s.rayleigh_stiffness, fixed=fixed, node_rotations=lambda: soft.el.R[rep])
+                           s.rayleigh_stiffness, fixed=fixed)
+    solver.node_rotations = node_rotations(grid, soft, femur, tibia, solver)
     return AssociationModel(grid=grid, femur=femur, tibia=tibia, springs=springs, contact=contact, soft=soft,
                             solver=solver, skin_vertices=np.asarray(skin.vertices), skin_faces=np.asarray(skin.faces),
                             femur_surface=ph.femur, tibia_surface=tibia_surface, settings=s, phantom=ph,
