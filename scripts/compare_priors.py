@@ -13,9 +13,6 @@ import csv
 import statistics
 import sys
 
-CAMERAS = {"oblique": 35.0, "frontal": 0.0, "lateral": 70.0}
-
-
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--flexion", default="60,90")
@@ -24,14 +21,14 @@ def main():
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     from fitting.optimize import perturb_endpoints
-    from models.fem.case import default_camera
+    from models.fem.case import camera_from_spec
     from models.fem.prior_case import compare_cases
     from models.mechanism import Mechanism
     from models.mechanism.params import load_model
 
     truth = Mechanism.from_name("volunteer")
     prior = Mechanism(perturb_endpoints(load_model("volunteer"), 1.0, 2.0, seed=3))
-    cams = {c: default_camera(azimuth_deg=CAMERAS[c]) for c in args.cameras.split(",")}
+    cams = {c: camera_from_spec(c) for c in args.cameras.split(",")}
     rows = compare_cases(truth, prior, [float(v) for v in args.flexion.split(",")], cams,
                          methods=args.methods.split(","), progress=lambda t: print(f"... {t}", file=sys.stderr, flush=True))
     print("| method | camera | flexion | estimate | femur footprints | tibia footprints | femur epiphysis | tibia epiphysis | steps | wall (s) | converged |")

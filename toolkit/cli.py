@@ -9,6 +9,8 @@
     knee contact MODEL [--load 700] [--out DIR] [--force]
     knee osteotomy MODEL --bone tibia|femur --angle 8 [--plane px,py,pz,nx,ny,nz] [--hinge hx,hy,hz,ax,ay,az]
                    [--release mcl] [--trial CSV] [--mass 72] [--height 1.75] [--out DIR] [--force]
+    knee fem MODEL [--flexion 90] [--truth MODEL] [--camera oblique|frontal|lateral|AZ,EL,DIST] [--rrd FILE]
+             [--cloud FILE | --depth FILE --intrinsics fx,fy,cx,cy [--depth-scale 1]] [--pose FILE]
 
 Angles in degrees, lengths in mm. Bad input gives a one-line ``knee: error: ...`` and exit code 2; no
 existing file is overwritten unless ``--force`` is given.
@@ -355,6 +357,130 @@ def cmd_osteotomy(args) -> int:
     return 0
 
 
+def _numbers(text: str, n: int, what: str) -> np.ndarray:
+    try:
+        v = np.array([float(x) for x in str(text).split(",")])
+    except ValueError:
+        v = np.zeros(0)
+    if v.size != n or not np.all(np.isfinite(v)):
+        raise KneeInputError(f"{what} must be {n} comma-separated numbers, got {text!r}")
+    return v
+
+
+def _measured_points(args):
+    """A measured point cloud from --cloud or --depth/--intrinsics (None when neither is given)."""
+    from models.fem.depth import load_depth_image, load_point_cloud
+
+    if args.cloud and args.depth:
+        raise KneeInputError("give either --cloud or --depth, not both")
+    pose = None
+    if args.pose:
+        try:
+            pose = np.loadtxt(args.pose, dtype=float).reshape(4, 4)
+        except (OSError, ValueError):
+            raise KneeInputError(f"--pose {args.pose}: not a readable 4x4 matrix (16 numbers)") from None
+    if args.cloud:
+        pts = load_point_cloud(args.cloud)
+        return pts if pose is None else pts @ pose[:3, :3].T + pose[:3, 3]
+    if args.depth:
+        if not args.intrinsics:
+            raise KneeInputError("--depth needs --intrinsics fx,fy,cx,cy (pixels)")
+        fx, fy, cx, cy = _numbers(args.intrinsics, 4, "--intrinsics")
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+        if not (args.depth_scale > 0 and math.isfinite(args.depth_scale)):
+            raise KneeInputError(f"--depth-scale must be a positive number, got {args.depth_scale}")
+        return load_depth_image(args.depth, K, pose, args.depth_scale)
+    if args.intrinsics or args.pose:
+        raise KneeInputError("--intrinsics and --pose go with --depth or --cloud")
+    return None
+
+
+def cmd_fem(args) -> int:
+    from models.fem.case import (FemDivergence, camera_from_spec, case_points, run_standard_case, target_points,
+                                 truth_phantom)
+    from models.fem.depth import DepthNoise
+    from models.fem.scene import FemSettings, build_association_model
+    from models.fem.views import FemRecorder
+    from models.mechanism import Mechanism
+    from toolkit.conventions import invert_poses, joint_to_pose, transform_points
+
+    rrd = Path(args.rrd) if args.rrd else None
+    _check_new(rrd, args.force)
+    if not (math.isfinite(args.flexion) and 0.0 <= args.flexion <= 150.0):
+        raise KneeInputError(f"--flexion must be 0-150 deg, got {args.flexion}")
+    if args.max_steps < 1:
+        raise KneeInputError(f"--max-steps must be positive, got {args.max_steps}")
+    cam = camera_from_spec(args.camera)
+    measured = _measured_points(args)
+    mech = Mechanism.from_name(args.model)
+    truth = Mechanism.from_name(args.truth) if args.truth else mech
+    if measured is None and not truth.in_range(math.radians(args.flexion)):
+        lo, hi = (math.degrees(v) for v in truth.assembly_range)
+        raise KneeInputError(f"--flexion {args.flexion:g} deg is outside the assembly range of "
+                             f"{truth.params.name} ({lo:.1f} to {hi:.1f} deg)")
+    print(f"knee fem: building the association model of {mech.params.name} ...", file=sys.stderr, flush=True)
+    t0 = time.perf_counter()
+    model = build_association_model(mech, FemSettings())
+    print(f"  grid {tuple(int(v) for v in model.grid.shape)} ({len(model.grid.cells)} cells, {model.grid.n_nodes} nodes), bones "
+          f"{len(model.femur.el.cells)} + {len(model.tibia.el.cells)} tetrahedra; {time.perf_counter() - t0:.1f} s",
+          file=sys.stderr)
+    truth_tf, truth_info = None, None
+    if measured is None:
+        pts, truth_tf = case_points(truth, args.flexion, cam, DepthNoise() if not args.no_noise else None,
+                                    args.seed, model.settings)
+        ph_t = truth_phantom(truth, model.settings)
+        T_true = joint_to_pose(truth_tf)
+        targets = target_points(model, mech)
+        T0 = joint_to_pose(mech.solve(0.0)[0])
+        truth_info = {"femur": targets.femur, "tibia": transform_points(T_true @ invert_poses(T0), targets.tibia),
+                      "femur_fp": targets.femur_footprints, "tibia_fp": targets.tibia_footprints,
+                      "targets": (targets.femur, targets.tibia),
+                      "meshes": {"femur": ph_t.femur, "tibia": ph_t.tibia.copy().apply_transform(T_true)}}
+        print(f"  case: {truth.params.name} at {args.flexion:g} deg seen by the {args.camera} camera, "
+              f"{len(pts)} depth points", file=sys.stderr)
+    else:
+        pts = measured
+        print(f"  measured point cloud: {len(pts)} points (no truth: no target point errors)", file=sys.stderr)
+    recorder = (FemRecorder(rrd, model, every=max(2, args.max_steps // 80), truth=truth_info)
+                if rrd is not None else None)
+    bar = ProgressBar()
+
+    def on_step(k, phase, model_, surf, bone):
+        if recorder is not None:
+            recorder(k, phase, model_, surf, bone)
+        if not args.quiet:
+            bar((k + 1) / args.max_steps, f"step {k + 1} [{phase} forces]")
+
+    try:
+        r = run_standard_case(mech, args.flexion, cam, model=model, seed=args.seed, progress=False,
+                              max_steps=args.max_steps, points=pts, truth_tf=truth_tf, on_step=on_step)
+    except FemDivergence as e:
+        if not args.quiet:
+            print(file=sys.stderr)
+        if recorder is not None:
+            recorder.finish(message=str(e))
+            print(f"partial recording (steps 0-{recorder.last_step}): {rrd}", file=sys.stderr)
+        return _err(str(e))
+    if not args.quiet:
+        bar(1.0, f"{r.steps} steps")
+    if recorder is not None:
+        recorder.finish(r, f"{r.steps} steps, {'converged' if r.converged else 'not converged'}")
+    print(f"{mech.params.name}: {r.steps} steps ({r.steps_bone_phase} with bone forces) in {r.wall_seconds:.1f} s "
+          f"({r.steps / r.wall_seconds:.1f} steps/s), {'converged' if r.converged else 'NOT converged'}; "
+          f"registration ICP fitness {r.icp_fitness:.2f}")
+    if r.errors:
+        print(f"flexion: true {r.flexion_true_deg:.1f} deg, FEM {r.flexion_estimated_deg:.1f} deg")
+        print("target point errors, mean ± sd (mm):")
+        for bone, e in r.errors.items():
+            fp, ep = e["footprints"], e["epiphysis"]
+            print(f"  {bone:5s}  ACL/PCL footprints {fp[0]:6.2f} ± {fp[1]:5.2f}   epiphysis {ep[0]:6.2f} ± {ep[1]:5.2f}")
+    else:
+        print(f"flexion of the FEM bones: {r.flexion_estimated_deg:.1f} deg")
+    if rrd is not None:
+        print(f"recording: {rrd}  (open with: rerun {rrd})")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="knee", description="Knee kinematics toolkit (mm, degrees at the CLI).")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -417,6 +543,23 @@ def build_parser() -> argparse.ArgumentParser:
     op.add_argument("--out", default="knee-osteotomy", help="output folder (knee-osteotomy)")
     op.add_argument("--force", action="store_true")
     op.set_defaults(func=cmd_osteotomy)
+    fe = sub.add_parser("fem", help="the association FEM model deformed toward a depth map (the paper's method)")
+    fe.add_argument("model", help="the parameter set the model is built from (bundled name or TOML)")
+    fe.add_argument("--flexion", type=float, default=90.0, help="flexion of the standard case's truth, deg (90)")
+    fe.add_argument("--truth", help="parameter set generating the truth (default: MODEL)")
+    fe.add_argument("--camera", default="oblique", help="oblique, frontal, lateral or AZ,EL,DIST (oblique)")
+    fe.add_argument("--no-noise", action="store_true", help="no depth noise")
+    fe.add_argument("--seed", type=int, default=0, help="seed of the depth noise (0)")
+    fe.add_argument("--cloud", help="a measured point cloud (.ply/.pcd/.xyz, mm) instead of the virtual camera")
+    fe.add_argument("--depth", help="a measured depth image (16-bit PNG or .npy) instead of the virtual camera")
+    fe.add_argument("--intrinsics", help="fx,fy,cx,cy of the depth image (pixels)")
+    fe.add_argument("--depth-scale", type=float, default=1.0, help="depth units to mm (1)")
+    fe.add_argument("--pose", help="text file with the 4x4 camera-to-model transform (default identity)")
+    fe.add_argument("--max-steps", type=int, default=400, help="step limit (400)")
+    fe.add_argument("--rrd", help="Rerun recording to write")
+    fe.add_argument("--force", action="store_true", help="replace an existing recording")
+    fe.add_argument("--quiet", action="store_true", help="no progress bar")
+    fe.set_defaults(func=cmd_fem)
     return ap
 
 

@@ -16,13 +16,16 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import trimesh
 
 from models.fem.depth import Camera, DepthNoise, backproject, icp, render_depth
+from models.fem.elements import hex_inverted
 from models.fem.forces import BoneForces, SurfaceForces
 from models.fem.mapping import TrilinearMapping
 from models.fem.scene import AssociationModel, FemSettings, build_association_model, knee_angles
 from models.mechanism.solver import Mechanism
 from toolkit.conventions import invert_poses, joint_to_pose, transform_points
+from toolkit.errors import KneeInputError
 
 
 def default_camera(distance: float = 350.0, azimuth_deg: float = 35.0, elevation_deg: float = 30.0,
@@ -33,6 +36,25 @@ def default_camera(distance: float = 350.0, azimuth_deg: float = 35.0, elevation
     d = np.array([np.cos(el) * np.cos(az), np.sin(el), np.cos(el) * np.sin(az)])
     t = np.asarray(target, float)
     return Camera.looking_at(t + distance * d, t, up=(0.0, 1.0, 0.0))
+
+
+CAMERA_PLACEMENTS = {"oblique": 35.0, "frontal": 0.0, "lateral": 70.0}  # azimuth towards lateral, deg
+
+
+def camera_from_spec(text: str) -> Camera:
+    """A camera from a placement name (``oblique``, ``frontal``, ``lateral``: 350 mm away, raised 30 deg)
+    or ``AZIMUTH,ELEVATION,DISTANCE`` (deg, deg, mm)."""
+    t = str(text).strip().lower()
+    if t in CAMERA_PLACEMENTS:
+        return default_camera(azimuth_deg=CAMERA_PLACEMENTS[t])
+    try:
+        az, el, dist = (float(v) for v in t.split(","))
+    except ValueError:
+        raise KneeInputError(f"camera must be one of {', '.join(CAMERA_PLACEMENTS)} or AZIMUTH,ELEVATION,DISTANCE "
+                             f"(deg, deg, mm), got {text!r}") from None
+    if not (np.isfinite([az, el, dist]).all() and 100.0 <= dist <= 2000.0 and -80.0 <= el <= 80.0):
+        raise KneeInputError(f"camera distance must be 100-2000 mm and elevation within +-80 deg, got {text!r}")
+    return default_camera(distance=dist, azimuth_deg=az, elevation_deg=el)
 
 
 def truth_phantom(mech: Mechanism, settings: FemSettings | None = None):
@@ -65,6 +87,7 @@ class CaseResult:
     history: dict = field(default_factory=dict)
     distances: dict = field(default_factory=dict)  # bone -> per-point error (mm), for distance maps
     points: dict = field(default_factory=dict)     # bone -> estimated target points (P, 3)
+    icp_fitness: float = float("nan")                # of the registration of the cloud to the model
 
 
 def target_points(model: AssociationModel, mech: Mechanism, footprint_radius=10.0, epiphysis_length=40.0):
@@ -85,33 +108,98 @@ def target_points(model: AssociationModel, mech: Mechanism, footprint_radius=10.
     return TargetPoints(fe, te, ffp, tfp)
 
 
+class FemDivergence(KneeInputError):
+    """The simulation stopped: non-finite values, inverted elements or an energy blow-up at ``step``."""
+
+    def __init__(self, message: str, step: int):
+        super().__init__(message)
+        self.step = step
+
+
+MIN_POINTS = 500          # fewer depth points than this cannot place the knee
+MIN_ICP_FITNESS = 0.3     # fraction of the seen thigh's points matched by the registration
+MAX_INVERTED_FRACTION = 0.05
+
+
+def check_state(model: AssociationModel, step: int, x0_extent: float) -> int:
+    """Stop with :class:`FemDivergence` (naming the step) on non-finite positions, an energy blow-up (a node
+    moved more than twice the model's extent, or faster than 20 m/s) or more than 5 % of the grid's cells
+    inverted; returns the number of inverted cells."""
+    s = model.solver
+    if not (np.all(np.isfinite(s.x)) and np.all(np.isfinite(s.v))):
+        raise FemDivergence(f"the FEM diverged at step {step}: non-finite positions or velocities", step)
+    disp = float(np.abs(s.x - model.grid.X).max())
+    speed = float(np.abs(s.v).max())
+    if disp > 2.0 * x0_extent or speed > 2.0e4:
+        raise FemDivergence(f"the FEM diverged at step {step}: energy blow-up (largest displacement {disp:.0f} mm, "
+                            f"largest speed {speed:.0f} mm/s)", step)
+    inverted = int(hex_inverted(s.x[model.grid.cells]).sum())
+    model.inverted_cells = inverted
+    if inverted > MAX_INVERTED_FRACTION * len(model.grid.cells):
+        raise FemDivergence(f"the FEM diverged at step {step}: {inverted} of {len(model.grid.cells)} grid cells "
+                            f"inverted", step)
+    return inverted
+
+
+def case_points(truth: Mechanism, flexion_deg: float, camera: Camera, noise: DepthNoise | None, seed: int = 0,
+                settings: FemSettings | None = None):
+    """The standard case's input: the depth points (P, 3) a virtual camera sees of the skin of ``truth``'s
+    phantom posed at ``flexion_deg`` (with noise), and the truth's TF joint coordinates."""
+    ph = truth_phantom(truth, settings)
+    tf, pf, _ = truth.solve(np.radians(flexion_deg))
+    skin = ph.skin(joint_to_pose(tf), joint_to_pose(pf) if truth.has_pf else None)
+    depth = render_depth(skin.vertices, skin.faces, camera)
+    if noise is not None:
+        depth = noise.apply(depth, np.random.default_rng(seed))
+    return backproject(depth, camera.K, camera.T_world_cam), tf
+
+
+def register_to_model(model: AssociationModel, points) -> tuple[np.ndarray, float]:
+    """Bring a point cloud (world/camera frame) to the model's frame by ICP of the seen thigh onto the
+    model's thigh; returns the points in the model frame and the ICP fitness. Raises on too few points
+    or a failed registration."""
+    pts = np.asarray(points, float)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < MIN_POINTS:
+        raise KneeInputError(f"the point cloud has {len(pts) if pts.ndim == 2 else 0} points; at least {MIN_POINTS} "
+                             f"are needed to place the knee")
+    skin = trimesh.Trimesh(model.skin_vertices, model.skin_faces, process=False)
+    dense, _ = trimesh.sample.sample_surface(skin, 30000, seed=0)  # the skin's vertices are ~15 mm apart
+    thigh_model = dense[dense[:, 1] > 60.0]
+    thigh_seen = pts[pts[:, 1] > 70.0]
+    if len(thigh_seen) < 200:
+        raise KneeInputError(f"only {len(thigh_seen)} depth points on the thigh (more than 70 mm above the joint); "
+                             f"at least 200 are needed for the registration")
+    T_reg, fitness, _ = icp(thigh_seen[::3], thigh_model, max_distance=10.0)
+    if fitness < MIN_ICP_FITNESS:
+        raise KneeInputError(f"the registration of the point cloud to the model failed (ICP fitness {fitness:.2f}, "
+                             f"below {MIN_ICP_FITNESS})")
+    return pts @ T_reg[:3, :3].T + T_reg[:3, 3], fitness
+
+
 def run_standard_case(mech: Mechanism, flexion_deg: float = 90.0, camera: Camera | None = None,
                       noise: DepthNoise | None = DepthNoise(), settings: FemSettings | None = None,
                       bone_force_scale: float = 1.0, surface_k: float = 2.0, max_steps: int = 400,
                       model: AssociationModel | None = None, seed: int = 0, progress=True,
-                      truth: Mechanism | None = None) -> CaseResult:
+                      truth: Mechanism | None = None, points=None, truth_tf=None, on_step=None) -> CaseResult:
     """Run the paper's method on the phantom standard case; see the module docstring. ``truth``: another
-    parameter set that generates the truth (default ``mech``: the model is built from ``mech``)."""
+    parameter set that generates the truth (default ``mech``: the model is built from ``mech``).
+
+    ``points``: a measured point cloud (P, 3) in mm, in place of the virtual camera's; there is no truth
+    then (unless ``truth_tf``, the true TF joint coordinates, is given), and the errors are empty.
+    ``on_step(k, phase, model, surface_forces, bone_forces)`` is called after every step (e.g. to record
+    it; the surface forces act in the "surface" phase only). Divergence raises :class:`FemDivergence`
+    naming the step."""
     t_start = time.perf_counter()
     model = model or build_association_model(mech, settings)
-    ph = model.phantom
     tmech = truth or mech
-    ph_true = ph if truth is None else truth_phantom(truth, model.settings)
-    tf, pf, _ = tmech.solve(np.radians(flexion_deg))
-    T_true = joint_to_pose(tf)
-    skin_true = ph_true.skin(T_true, joint_to_pose(pf) if tmech.has_pf else None)
     cam = camera or default_camera()
-    rng = np.random.default_rng(seed)
-    depth = render_depth(skin_true.vertices, skin_true.faces, cam)
-    if noise is not None:
-        depth = noise.apply(depth, rng)
-    pts = backproject(depth, cam.K, cam.T_world_cam)
-    # registration of the camera to the model: ICP of the seen thigh onto the model's thigh
-    thigh_model = model.skin_vertices[model.skin_vertices[:, 1] > 60.0]
-    thigh_seen = pts[pts[:, 1] > 70.0]
-    if len(thigh_seen) > 200:
-        T_reg, _, _ = icp(thigh_seen[::3], thigh_model, max_distance=10.0)
-        pts = pts @ T_reg[:3, :3].T + T_reg[:3, 3]
+    if points is None:
+        pts, tf = case_points(tmech, flexion_deg, cam, noise, seed, model.settings)
+        T_true = joint_to_pose(tf)
+    else:
+        pts, tf = np.asarray(points, float), truth_tf
+        T_true = None if tf is None else joint_to_pose(np.asarray(tf, float))
+    pts, fitness = register_to_model(model, pts)
     targets = target_points(model, mech)
     fmap = TrilinearMapping(model.grid, targets.femur)
     tmap = TrilinearMapping(model.grid, targets.tibia)
@@ -119,54 +207,67 @@ def run_standard_case(mech: Mechanism, flexion_deg: float = 90.0, camera: Camera
     held = bool(s.fixed.any())
     bone = BoneForces(model.femur, model.tibia, scale=bone_force_scale, use_femur=not held)
     surf = SurfaceForces(model.grid, model.skin_vertices, pts, k=surface_k)
-    hist = {"step": [], "flexion_deg": [], "reference_mm": [], "within": [], "skin_motion_mm": []}
+    hist = {"step": [], "flexion_deg": [], "reference_mm": [], "within": [], "skin_motion_mm": [],
+            "iterations": [], "inverted": []}
     phase, bone_steps, calm, converged = "bone", 0, 0, False
     skin_prev = model.skin_vertices.copy()
     smap = surf.map
-    for k in range(max_steps):
-        if phase == "bone":
-            s.step(bone.forces)
-            bone_steps += 1
-            flex, between = knee_angles(model)
-            if between < 100.0 or bone_steps >= max_steps // 3:
-                phase = "surface"
-                s.fields.append(surf)
-                s._lu = None  # the surface springs enter the preconditioner
-        else:
-            s.step()
-            flex, between = knee_angles(model)
-        skin_now = smap.apply(s.x)
-        motion = float(np.linalg.norm(skin_now - skin_prev, axis=1).mean())
-        skin_prev = skin_now
-        hist["step"].append(k)
-        hist["flexion_deg"].append(flex)
-        hist["reference_mm"].append(surf.reference if phase == "surface" else np.nan)
-        hist["within"].append(surf.within_fraction if phase == "surface" else np.nan)
-        hist["skin_motion_mm"].append(motion)
-        if progress and k % 20 == 0:
-            print(f"  step {k:4d} [{phase}] flexion {flex:6.1f} deg, skin motion {motion:7.3f} mm/step",
-                  file=sys.stderr, flush=True)
-        if phase == "surface":
-            calm = calm + 1 if motion < 0.01 else 0
-            if calm >= 5:
-                converged = True
-                break
-    if surf in s.fields:
-        s.fields.remove(surf)
-    # evaluation
-    T0 = joint_to_pose(mech.solve(0.0)[0])
-    truth_f = targets.femur
-    truth_t = transform_points(T_true @ invert_poses(T0), targets.tibia)
-    est_f, est_t = fmap.apply(s.x), tmap.apply(s.x)
-    df = np.linalg.norm(est_f - truth_f, axis=1)
-    dt_ = np.linalg.norm(est_t - truth_t, axis=1)
-    errors = {"femur": {"footprints": (float(df[targets.femur_footprints].mean()), float(df[targets.femur_footprints].std())),
-                        "epiphysis": (float(df.mean()), float(df.std()))},
-              "tibia": {"footprints": (float(dt_[targets.tibia_footprints].mean()), float(dt_[targets.tibia_footprints].std())),
-                        "epiphysis": (float(dt_.mean()), float(dt_.std()))}}
+    extent = float(np.ptp(model.grid.X, axis=0).max())
+    try:
+        for k in range(max_steps):
+            if phase == "bone":
+                info = s.step(bone.forces)
+                inverted = check_state(model, k, extent)
+                bone_steps += 1
+                flex, between = knee_angles(model)
+                if between < 100.0 or bone_steps >= max_steps // 3:
+                    phase = "surface"
+                    s.fields.append(surf)
+                    s._lu = None  # the surface springs enter the preconditioner
+            else:
+                info = s.step()
+                inverted = check_state(model, k, extent)
+                flex, between = knee_angles(model)
+            skin_now = smap.apply(s.x)
+            motion = float(np.linalg.norm(skin_now - skin_prev, axis=1).mean())
+            skin_prev = skin_now
+            hist["step"].append(k)
+            hist["flexion_deg"].append(flex)
+            hist["reference_mm"].append(surf.reference if phase == "surface" else np.nan)
+            hist["within"].append(surf.within_fraction if phase == "surface" else np.nan)
+            hist["skin_motion_mm"].append(motion)
+            hist["iterations"].append(info.iterations)
+            hist["inverted"].append(inverted)
+            if on_step is not None:
+                on_step(k, phase, model, surf, bone)
+            if progress and k % 20 == 0:
+                print(f"  step {k:4d} [{phase}] flexion {flex:6.1f} deg, skin motion {motion:7.3f} mm/step",
+                      file=sys.stderr, flush=True)
+            if phase == "surface":
+                calm = calm + 1 if motion < 0.01 else 0
+                if calm >= 5:
+                    converged = True
+                    break
+    finally:
+        if surf in s.fields:
+            s.fields.remove(surf)
     flex, _ = knee_angles(model)
-    return CaseResult(flexion_true_deg=float(np.degrees(tf[0])), flexion_estimated_deg=flex, errors=errors,
+    est_f, est_t = fmap.apply(s.x), tmap.apply(s.x)
+    errors, distances = {}, {}
+    if T_true is not None:
+        T0 = joint_to_pose(mech.solve(0.0)[0])
+        truth_f = targets.femur
+        truth_t = transform_points(T_true @ invert_poses(T0), targets.tibia)
+        df = np.linalg.norm(est_f - truth_f, axis=1)
+        dt_ = np.linalg.norm(est_t - truth_t, axis=1)
+        errors = {"femur": {"footprints": (float(df[targets.femur_footprints].mean()), float(df[targets.femur_footprints].std())),
+                            "epiphysis": (float(df.mean()), float(df.std()))},
+                  "tibia": {"footprints": (float(dt_[targets.tibia_footprints].mean()), float(dt_[targets.tibia_footprints].std())),
+                            "epiphysis": (float(dt_.mean()), float(dt_.std()))}}
+        distances = {"femur": df, "tibia": dt_}
+    return CaseResult(flexion_true_deg=float(np.degrees(tf[0])) if tf is not None else float("nan"),
+                      flexion_estimated_deg=flex, errors=errors,
                       steps=len(hist["step"]), steps_bone_phase=bone_steps,
                       wall_seconds=time.perf_counter() - t_start, converged=converged,
                       history={k: np.asarray(v) for k, v in hist.items()},
-                      distances={"femur": df, "tibia": dt_}, points={"femur": est_f, "tibia": est_t})
+                      distances=distances, points={"femur": est_f, "tibia": est_t}, icp_fitness=fitness)

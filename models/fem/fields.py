@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 from models.fem.assembly import PatternAssembler
 from models.fem.elements import CorotationalElements
 from models.fem.mapping import TrilinearMapping
+from toolkit.errors import KneeInputError
 
 
 class _Scatter:
@@ -63,8 +64,13 @@ class MappedBoneElasticity:
     """Co-rotational tetrahedra of a bone whose nodes are embedded in the grid (x_bone = J x_grid);
     forces return through J^T and the stiffness enters as J^T K J."""
 
-    def __init__(self, grid, X_bone, tets, E=1500.0, nu=0.3):
+    def __init__(self, grid, X_bone, tets, E=1500.0, nu=0.3, name="bone"):
         self.map = TrilinearMapping(grid, X_bone)
+        beyond = np.any(np.abs(self.map.natural) > 1.0 + 1e-9, axis=1)
+        n_out = int(np.count_nonzero(beyond | self.map.outside_mask))
+        if n_out:
+            raise KneeInputError(f"{n_out} of {len(self.map.natural)} {name} nodes lie outside the soft-tissue grid "
+                                 f"(outside the skin); the bones must lie inside the skin surface")
         self.el = CorotationalElements(X_bone, tets, E, nu)
         self.sc = _Scatter(np.asarray(tets), len(X_bone))
         self.asm = PatternAssembler(np.asarray(tets), len(X_bone))

@@ -66,6 +66,7 @@ class ImplicitEuler:
         self.time = 0.0
         self.steps = 0
         self.refreshes = 0
+        self.last_info = None
 
     @property
     def _cm(self):
@@ -172,4 +173,5 @@ class ImplicitEuler:
         self.time += self.dt
         self.steps += 1
         res = float(np.linalg.norm(A @ v - rhs) / max(np.linalg.norm(rhs), 1e-300))
-        return StepInfo(iterations=its[0], refreshed=refreshed, residual=res)
+        self.last_info = StepInfo(iterations=its[0], refreshed=refreshed, residual=res)
+        return self.last_info

@@ -29,6 +29,7 @@ class TrilinearMapping:
         cell = lookup[tuple(ijk.T)]
         missing = cell < 0
         self.outside = int(missing.sum())
+        self.outside_mask = missing.copy()
         if missing.any():  # nearest kept cell by cell-centre distance, extrapolating from it
             centres = np.column_stack([0.5 * (a[:-1] + a[1:])[grid.cell_ijk[:, d]] for d, a in enumerate(grid.axes)])
             d2 = ((P[missing, None, :] - centres[None, :, :]) ** 2).sum(-1)

@@ -27,8 +27,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from models.fem.case import default_camera, run_standard_case, target_points, truth_phantom
-from models.fem.depth import DepthNoise, backproject, render_depth
+from models.fem.case import case_points, default_camera, run_standard_case, target_points
+from models.fem.depth import DepthNoise
 from models.fem.fields import MappedSprings, affine_point_map
 from models.fem.forces import SurfaceForces
 from models.fem.mapping import TrilinearMapping
@@ -102,13 +102,7 @@ def link_springs(model: AssociationModel, prior: Mechanism, k: float = 1000.0):
 
 
 def _depth_points(truth: Mechanism, flexion_deg, camera, noise, seed, settings=None):
-    ph = truth_phantom(truth, settings)
-    tf, pf, _ = truth.solve(math.radians(flexion_deg))
-    skin = ph.skin(joint_to_pose(tf), joint_to_pose(pf) if truth.has_pf else None)
-    depth = render_depth(skin.vertices, skin.faces, camera)
-    if noise is not None:
-        depth = noise.apply(depth, np.random.default_rng(seed))
-    return backproject(depth, camera.K, camera.T_world_cam), tf
+    return case_points(truth, flexion_deg, camera, noise, seed, settings)
 
 
 def _evaluate(model, prior, truth_tf, x=None, T_femur=None, T_tibia=None, T_world=None):

@@ -149,8 +149,8 @@ def build_association_model(mech: Mechanism, settings: FemSettings | None = None
     tibia_surface = ph.tibia.copy().apply_transform(T)
     Xf, Tf, _ = tetrahedralize_to_count(ph.femur, s.bone_tets)
     Xt, Tt, _ = tetrahedralize_to_count(tibia_surface, s.bone_tets)
-    femur = MappedBoneElasticity(grid, Xf, Tf, s.bone_E, s.bone_nu)
-    tibia = MappedBoneElasticity(grid, Xt, Tt, s.bone_E, s.bone_nu)
+    femur = MappedBoneElasticity(grid, Xf, Tf, s.bone_E, s.bone_nu, name="femur")
+    tibia = MappedBoneElasticity(grid, Xt, Tt, s.bone_E, s.bone_nu, name="tibia")
     soft = GridElasticity(grid, s.soft_E, s.soft_nu)
     # collateral springs: MCL along the mechanism's (isometric) MCL fibre; LCL between the lateral
     # femoral epicondyle region and the lateral proximal tibia, at the pair of surface points whose

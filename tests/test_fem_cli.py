@@ -1,0 +1,153 @@
+"""`knee fem` and the association model's faults (issue "association FEM", sections 6 and 7)."""
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from toolkit.errors import KneeInputError
+from tests.test_cli import assert_clean_error, run
+
+
+def _rrd_entities(path):
+    rerun_bin = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
+    env = dict(os.environ, CI="1")
+    v = subprocess.run([rerun_bin, "rrd", "verify", str(path)], capture_output=True, text=True, env=env, timeout=120)
+    assert v.returncode == 0, v.stderr
+    pr = subprocess.run([rerun_bin, "rrd", "print", str(path)], capture_output=True, text=True, env=env, timeout=120)
+    return pr.stdout
+
+
+def test_knee_fem_short_run_prints_errors_and_records(tmp_path):
+    rrd = tmp_path / "fem.rrd"
+    p = run("fem", "volunteer", "--flexion", 60, "--max-steps", 6, "--rrd", rrd, "--quiet")
+    assert p.returncode == 0, p.stderr
+    assert "target point errors" in p.stdout and "footprints" in p.stdout
+    # the printed femur error is a real distance: finite, positive
+    line = next(ln for ln in p.stdout.splitlines() if ln.strip().startswith("femur"))
+    assert float(line.split()[3]) > 0
+    text = _rrd_entities(rrd)
+    for entity in ("/knee/grid", "/knee/femur", "/knee/tibia", "/knee/depth", "/knee/truth/tibia",
+                   "/knee/bone_forces", "/metrics/errors/femur_footprints", "/metrics/knee/flexion_deg",
+                   "/metrics/solver/cg_iterations", "/knee/errors/tibia"):
+        assert entity in text, entity
+    # never overwritten
+    p2 = run("fem", "volunteer", "--max-steps", 2, "--rrd", rrd)
+    assert_clean_error(p2, "exists")
+
+
+@pytest.mark.parametrize("args,msg", [
+    (["--camera", "sideways"], "camera must be one of"),
+    (["--camera", "10,20,5"], "camera distance"),
+    (["--flexion", "200"], "--flexion must be 0-150"),
+    (["--depth", "missing.png"], "--depth needs --intrinsics"),
+    (["--depth", "missing.png", "--intrinsics", "600,600,640"], "--intrinsics must be 4"),
+    (["--cloud", "missing.ply"], "no such point-cloud file"),
+    (["--intrinsics", "1,2,3,4"], "go with --depth or --cloud"),
+    (["--max-steps", "0"], "--max-steps must be positive"),
+])
+def test_knee_fem_bad_input(args, msg):
+    assert_clean_error(run("fem", "volunteer", *args), msg)
+
+
+def test_knee_fem_tiny_point_cloud(tmp_path):
+    f = tmp_path / "few.xyz"
+    np.savetxt(f, np.random.default_rng(0).normal(size=(40, 3)) * 30.0)
+    assert_clean_error(run("fem", "volunteer", "--cloud", f, "--quiet"), "40 points", "at least 500")
+
+
+def test_knee_fem_point_cloud_far_from_the_model(tmp_path):
+    # a plane of points far from the knee: nothing of a thigh to register
+    g = np.mgrid[0:60, 0:60].reshape(2, -1).T * 2.0
+    f = tmp_path / "plane.xyz"
+    np.savetxt(f, np.column_stack([g[:, 0] + 500.0, np.full(len(g), 80.0) + g[:, 1], np.zeros(len(g))]))
+    p = run("fem", "volunteer", "--cloud", f, "--quiet")
+    assert_clean_error(p, "registration")
+
+
+@pytest.fixture(scope="module")
+def fem_model(volunteer):
+    from models.fem.scene import build_association_model
+
+    return build_association_model(volunteer)
+
+
+def test_divergence_names_the_step_and_keeps_the_partial_recording(tmp_path, volunteer):
+    from models.fem.case import FemDivergence, run_standard_case
+    from models.fem.scene import build_association_model
+    from models.fem.views import FemRecorder
+
+    model = build_association_model(volunteer)
+    rec = FemRecorder(tmp_path / "partial.rrd", model, every=1)
+
+    def poison(k, phase, m, surf, bone):
+        rec(k, phase, m, surf, bone)
+        if k == 2:
+            m.solver.v[5] = np.nan  # as a blown-up solve would leave it
+
+    with pytest.raises(FemDivergence, match="step 3") as e:
+        run_standard_case(volunteer, 60.0, model=model, progress=False, max_steps=10, on_step=poison)
+    assert e.value.step == 3
+    rec.finish(message=str(e.value))
+    assert rec.last_step == 2
+    assert "/knee/grid" in _rrd_entities(tmp_path / "partial.rrd")
+
+
+def test_energy_blow_up_and_inverted_cells_stop_the_run(fem_model):
+    from models.fem.case import check_state
+
+    s = fem_model.solver
+    x0, v0 = s.x.copy(), s.v.copy()
+    extent = float(np.ptp(fem_model.grid.X, axis=0).max())
+    try:
+        assert check_state(fem_model, 0, extent) == 0
+        s.x = x0 + np.array([3.0 * extent, 0, 0]) * (np.arange(len(x0)) == 7)[:, None]
+        with pytest.raises(KneeInputError, match="step 4: energy blow-up"):
+            check_state(fem_model, 4, extent)
+        # mirror the grid through a plane: every cell inverted
+        s.x = x0 * np.array([-1.0, 1.0, 1.0])
+        with pytest.raises(KneeInputError, match=r"step 9: \d+ of \d+ grid cells inverted"):
+            check_state(fem_model, 9, extent)
+    finally:
+        s.x, s.v = x0, v0
+
+
+def test_open_skin_is_repaired_or_refused():
+    from models.fem.grid import build_grid, closed_skin
+
+    box = trimesh.creation.box(extents=[60.0, 120.0, 60.0])
+    holed = box.copy()
+    holed.update_faces(np.arange(len(holed.faces)) != 0)  # one triangle missing
+    assert not holed.is_watertight
+    fixed = closed_skin(holed)
+    assert fixed.is_watertight and abs(fixed.volume - box.volume) < 1e-6 * box.volume
+    g1, g2 = build_grid(box, 3, 30.0), build_grid(holed, 3, 30.0)
+    np.testing.assert_allclose(g1.weights, g2.weights)
+    # an open tube: both ends are closed by fans, giving the prism's volume
+    tube = trimesh.creation.cylinder(radius=30.0, height=120.0, sections=16)
+    tube.update_faces(np.abs(tube.face_normals[:, 2]) < 0.5)
+    closed = closed_skin(tube)
+    assert closed.is_watertight
+    assert abs(closed.volume - 0.5 * 16 * 30.0 ** 2 * np.sin(2 * np.pi / 16) * 120.0) < 1e-6 * closed.volume
+    # two holes touching at one vertex: the boundary is not a set of simple loops
+    f = box.faces
+    shared = [(i, j) for i in range(len(f)) for j in range(i + 1, len(f)) if len(set(f[i]) & set(f[j])) == 1]
+    i, j = shared[0]
+    bowtie = box.copy()
+    bowtie.update_faces(~np.isin(np.arange(len(f)), [i, j]))
+    with pytest.raises(KneeInputError, match="not closed"):
+        build_grid(bowtie, 3, 30.0)
+
+
+def test_bone_nodes_outside_the_grid_are_counted(fem_model):
+    from models.fem.fields import MappedBoneElasticity
+
+    X = fem_model.femur.el.X.copy()
+    X[:3] += np.array([500.0, 0.0, 0.0])  # three nodes far outside the skin
+    with pytest.raises(KneeInputError, match="3 of .* femur nodes lie outside"):
+        MappedBoneElasticity(fem_model.grid, X, fem_model.femur.el.cells, name="femur")
