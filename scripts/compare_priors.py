@@ -30,7 +30,7 @@ def main():
     prior = Mechanism(perturb_endpoints(load_model("volunteer"), 1.0, 2.0, seed=3))
     cams = {c: camera_from_spec(c) for c in args.cameras.split(",")}
     rows = compare_cases(truth, prior, [float(v) for v in args.flexion.split(",")], cams,
-                         methods=args.methods.split(","), progress=lambda t: print(f"... {t}", file=sys.stderr, flush=True))
+                         methods=args.methods.split(","), progress=lambda i, n, t: print(f"... [{i}/{n}] {t}", file=sys.stderr, flush=True))
     print("| method | camera | flexion | estimate | femur footprints | tibia footprints | femur epiphysis | tibia epiphysis | steps | wall (s) | converged |")
     print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")
     for r in rows:

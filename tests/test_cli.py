@@ -141,7 +141,45 @@ def test_demo(tmp_path):
     p = run("demo", "--out", tmp_path / "demo")
     assert p.returncode == 0, p.stderr
     assert "rerun " in p.stdout and "assembles from" in p.stdout
-    assert (tmp_path / "demo" / "volunteer-sweep.rrd").is_file()
-    assert (tmp_path / "demo" / "volunteer-sweep.csv").is_file()
-    p2 = run("demo", "--out", tmp_path / "demo")  # a second run does not touch the first
+    for f in ("volunteer-sweep.rrd", "volunteer-sweep.csv", "compare.rrd", "compare.md", "compare.csv", "compare.png"):
+        assert (tmp_path / "demo" / f).is_file(), f
+    rows = {ln.split()[0]: ln for ln in p.stdout.splitlines() if ln.startswith("(")}
+    assert set(rows) == {"(i)", "(iii)", "(iv)"}
+    # the prior-constrained FEM ends near the true 60 deg; its footprint error is printed in mm
+    flex = float(rows["(iii)"].split("°")[0].split()[-1])
+    assert abs(flex - 60.0) < 6.0
+    fp = {k: float(v.split("°")[1].split()[0]) for k, v in rows.items()}
+    assert fp["(iii)"] < fp["(i)"]
+    p2 = run("demo", "--out", tmp_path / "demo", "--kinematics-only")  # a second run does not touch the first
     assert p2.returncode == 0 and (tmp_path / "demo-2" / "volunteer-sweep.rrd").is_file()
+    assert not (tmp_path / "demo-2" / "compare.md").exists()
+    assert_clean_error(run("demo", "--flexion", 130, "--out", tmp_path / "d3"), "--flexion must be 15-110")
+
+
+def test_compare_kinematics_only(tmp_path):
+    out = tmp_path / "cmp"
+    p = run("compare", "volunteer", "--flexion", "45,75", "--methods", "kinematics", "--out", out, "--quiet")
+    assert p.returncode == 0, p.stderr
+    for f in ("compare.csv", "compare.md", "compare.png", "compare.rrd"):
+        assert (out / f).is_file(), f
+    import csv
+
+    rows = list(csv.DictReader((out / "compare.csv").open()))
+    assert [float(r["flexion_true_deg"]) for r in rows] == [45.0, 75.0]
+    for r in rows:  # the mechanism-only estimate: within a few degrees, errors of a few mm
+        assert abs(float(r["flexion_estimated_deg"]) - float(r["flexion_true_deg"])) < 3.0
+        assert 0.2 < float(r["femur_footprints_mm"]) < 8.0
+    assert "kinematics" in p.stdout and "prior = volunteer with every TF link endpoint moved" in p.stderr
+    assert_clean_error(run("compare", "volunteer", "--out", out), "not empty")
+
+
+@pytest.mark.parametrize("args,msg", [
+    (["--flexion", "30:20:5"], "--flexion must be FROM:TO:STEP"),
+    (["--flexion", "200"], "within 0-150"),
+    (["--methods", "paper,magic"], "--methods must be"),
+    (["--cameras", "above"], "camera must be one of"),
+    (["--perturb", "50"], "--perturb must be 0-10"),
+])
+def test_compare_bad_input(tmp_path, args, msg):
+    assert_clean_error(run("compare", "volunteer", "--out", tmp_path / "c", *args), msg)
+    assert not (tmp_path / "c").exists()

@@ -72,3 +72,27 @@ def test_unknown_comparison_method_is_refused(volunteer):
 
     with pytest.raises(KneeInputError, match="method must be one of paper, init, links, kinematics"):
         run_method("magic", volunteer, volunteer, 60.0)
+
+
+def test_flexion_not_estimable_falls_back_to_the_papers_method(volunteer, monkeypatch):
+    """A cloud without the shank cannot give the flexion: methods (ii)/(iii) say so and run the paper's
+    method instead; (iv) has no fallback and refuses."""
+    import models.fem.prior_case as pc
+    from models.fem.case import CaseResult, case_points, default_camera
+    from toolkit.errors import KneeInputError
+
+    pts, _ = case_points(volunteer, 60.0, default_camera(), None)
+    thigh_only = pts[pts[:, 1] > 40.0]
+    calls = []
+
+    def fake_paper(mech, flexion_deg, *a, **k):
+        calls.append(flexion_deg)
+        e = {"footprints": (9.0, 1.0), "epiphysis": (9.0, 1.0)}
+        return CaseResult(flexion_deg, 0.0, {"femur": e, "tibia": e}, 3, 1, 0.1, True)
+
+    monkeypatch.setattr(pc, "run_standard_case", fake_paper)
+    r = pc.run_method("links", volunteer, volunteer, 60.0, points=thigh_only)
+    assert calls == [60.0] and r.method == "links"
+    assert any("fallback: the paper's method" in n and "shank" in n for n in r.notes)
+    with pytest.raises(KneeInputError, match="shank"):
+        pc.run_method("kinematics", volunteer, volunteer, 60.0, points=thigh_only)

@@ -2,13 +2,14 @@
 
     knee models
     knee sweep MODEL [--from 0] [--to 120] [--step 1] [--out motion.csv] [--rrd sweep.rrd] [--force]
-    knee demo [--out DIR]
+    knee demo [--out DIR] [--flexion 60] [--kinematics-only]
     knee synth-subject OUT_DIR [--model volunteer] [--seed N] [--frames 60]
     knee fit SUBJECT_DIR --out OUT_DIR [--seed N] [--quick] [--no-global] [--no-recording] [--force]
     knee gait MODEL [--trial CSV] [--mass 72] [--height 1.75] [--out DIR] [--rrd FILE] [--force]
     knee contact MODEL [--load 700] [--out DIR] [--force]
     knee osteotomy MODEL --bone tibia|femur --angle 8 [--plane px,py,pz,nx,ny,nz] [--hinge hx,hy,hz,ax,ay,az]
                    [--release mcl] [--trial CSV] [--mass 72] [--height 1.75] [--out DIR] [--force]
+    knee compare MODEL [--truth MODEL] [--flexion 30:120:15] [--cameras oblique,frontal,lateral] [--out DIR]
     knee fem MODEL [--flexion 90] [--truth MODEL] [--camera oblique|frontal|lateral|AZ,EL,DIST] [--rrd FILE]
              [--cloud FILE | --depth FILE --intrinsics fx,fy,cx,cy [--depth-scale 1]] [--pose FILE]
 
@@ -131,6 +132,8 @@ def cmd_sweep(args) -> int:
 
 
 def cmd_demo(args) -> int:
+    if not (math.isfinite(args.flexion) and 15.0 <= args.flexion <= 110.0):
+        raise KneeInputError(f"--flexion must be 15-110 deg (within the prior's range), got {args.flexion}")
     base = Path(args.out)
     out_dir = base
     k = 2
@@ -156,7 +159,30 @@ def cmd_demo(args) -> int:
     print(f"motion table: {csv_path}")
     print(f"recording:    {rrd_path}")
     print(f"open it with: rerun {rrd_path}")
-    return 0 if res.complete else _err(res.message)
+    if not res.complete:
+        return _err(res.message)
+    if args.kinematics_only:
+        return 0
+    from models.demo import run_demo_comparison
+    from models.fem.compare_report import METHOD_LABELS
+
+    print(f"knee demo: virtual depth map at {args.flexion:g} deg; the association FEM with the kinematic prior "
+          f"and with the paper's forcing, two processes ...", file=sys.stderr, flush=True)
+    out = run_demo_comparison(out_dir, args.flexion, log=lambda t: print(t, file=sys.stderr, flush=True))
+    print(f"\nFEM at {args.flexion:g} deg flexion (truth: volunteer; prior: volunteer with TF endpoints moved 1-2 mm; "
+          f"oblique camera, depth noise):")
+    print(f"{'method':44s} {'flexion':>8s} {'footprints':>11s} {'epiphysis':>10s} {'steps':>6s} {'wall (s)':>9s}")
+    for r in out["rows"]:
+        fp = 0.5 * (r["femur_footprints_mm"] + r["tibia_footprints_mm"])
+        ep = 0.5 * (r["femur_epiphysis_mm"] + r["tibia_epiphysis_mm"])
+        print(f"{METHOD_LABELS[r['method']]:44s} {r['flexion_estimated_deg']:7.1f}° {fp:8.2f} mm {ep:7.2f} mm "
+              f"{r['steps']:6d} {r['wall_seconds']:9.1f}")
+        if r["notes"]:
+            print(f"  note: {r['notes']}")
+    print(f"comparison: {out_dir / 'compare.md'}, {out_dir / 'compare.png'}")
+    print(f"open it with: rerun {out_dir / 'compare.rrd'}")
+    print(f"(the FEM part took {out['seconds']:.0f} s)", file=sys.stderr)
+    return 0
 
 
 class ProgressBar:
@@ -481,6 +507,99 @@ def cmd_fem(args) -> int:
     return 0
 
 
+def _flexion_list(text: str) -> list[float]:
+    """``A:B:STEP`` (inclusive) or a comma list of angles, deg."""
+    t = str(text).strip()
+    try:
+        if ":" in t:
+            a, b, st = (float(v) for v in t.split(":"))
+            if not st > 0 or b < a:
+                raise ValueError
+            vals = list(np.arange(a, b + 1e-9, st))
+        else:
+            vals = [float(v) for v in t.split(",")]
+    except ValueError:
+        raise KneeInputError(f"--flexion must be FROM:TO:STEP (STEP > 0, TO >= FROM) or a comma list of "
+                             f"degrees, got {text!r}") from None
+    if not vals or len(vals) > 50 or not all(math.isfinite(v) and 0.0 <= v <= 150.0 for v in vals):
+        raise KneeInputError(f"--flexion must give 1-50 angles within 0-150 deg, got {text!r}")
+    return [float(v) for v in vals]
+
+
+def _camera_list(text: str) -> list[str]:
+    """Camera entries: placement names separated by commas, or any entries (AZ,EL,DIST) separated by ';'."""
+    from models.fem.case import CAMERA_PLACEMENTS
+
+    t = str(text).strip()
+    parts = t.split(";") if ";" in t else t.split(",")
+    parts = [p.strip() for p in parts if p.strip()]
+    if ";" not in t and not all(p.lower() in CAMERA_PLACEMENTS for p in parts):
+        parts = [t]  # a single AZ,EL,DIST camera
+    if not parts:
+        raise KneeInputError("--cameras is empty")
+    return parts
+
+
+def cmd_compare(args) -> int:
+    from fitting.optimize import perturb_endpoints
+    from models.fem.case import camera_from_spec, truth_phantom
+    from models.fem.compare_report import CompareRecorder, markdown, plot, summary, targets_check, write_csv
+    from models.fem.depth import DepthNoise
+    from models.fem.prior_case import METHODS, compare_cases
+    from models.fem.scene import build_association_model
+    from models.mechanism import Mechanism
+    from models.mechanism.params import load_model
+
+    flexions = _flexion_list(args.flexion)
+    cams = {c: camera_from_spec(c) for c in _camera_list(args.cameras)}
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    bad = [m for m in methods if m not in METHODS]
+    if bad or not methods:
+        raise KneeInputError(f"--methods must be a comma list of {', '.join(METHODS)}, got {args.methods!r}")
+    if not (0.0 <= args.perturb <= 10.0):
+        raise KneeInputError(f"--perturb must be 0-10 mm, got {args.perturb}")
+    out = _out_dir(args.out, args.force)
+    params = load_model(args.model)
+    if args.truth:
+        truth, prior = Mechanism.from_name(args.truth), Mechanism(params)
+        origin = f"truth {truth.params.name}, prior {params.name}"
+    else:
+        truth = Mechanism(params)
+        prior = Mechanism(perturb_endpoints(params, 0.5 * args.perturb, args.perturb, seed=args.seed))
+        origin = (f"truth {params.name}; prior = {params.name} with every TF link endpoint moved "
+                  f"{0.5 * args.perturb:g}-{args.perturb:g} mm (seed {args.seed})")
+    out.mkdir(parents=True, exist_ok=True)
+    print(f"knee compare: {origin}; {len(flexions)} flexion angles x {len(cams)} camera(s) x {len(methods)} methods",
+          file=sys.stderr)
+    probe = build_association_model(prior)
+    faces = {"femur": probe.femur_surface.faces, "tibia": probe.tibia_surface.faces}
+    recorder = CompareRecorder(out / "compare.rrd", truth_phantom(truth), faces, methods)
+    bar = ProgressBar()
+    progress = None if args.quiet else (lambda i, n, t: bar(i / n, t))
+    try:
+        rows = compare_cases(truth, prior, flexions, cams, methods, noise=None if args.no_noise else DepthNoise(),
+                             seed=args.seed, progress=progress, on_result=recorder)
+    finally:
+        recorder.finish()
+    write_csv(rows, out / "compare.csv")
+    title = f"Kinematic priors for the FEM: {origin}"
+    (out / "compare.md").write_text(markdown(rows, methods, title), encoding="utf-8")
+    plot(rows, methods, out / "compare.png", title)
+    summ = summary(rows, methods)
+    print("method      cases  failed  footprints (mm)  epiphysis (mm)  |flexion error| (deg)  wall (s)")
+    for m, v in summ.items():
+        print(f"{m:11s} {v['cases']:5d}  {v['failed']:6d}  {v['footprints_mm']:15.2f}  {v['epiphysis_mm']:14.2f}  "
+              f"{v['flexion_error_deg']:20.2f}  {v['wall_s']:8.1f}")
+    for line in targets_check(summ):
+        print(line)
+    notes = sorted({r["notes"] for r in rows if r.get("notes")} | {f"failed: {r['failed']}" for r in rows if r.get("failed")})
+    for n in notes:
+        print(f"note: {n}")
+    print(f"table: {out / 'compare.csv'}, {out / 'compare.md'}\nplot: {out / 'compare.png'}\n"
+          f"recording: {out / 'compare.rrd'}  (open with: rerun {out / 'compare.rrd'})")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="knee", description="Knee kinematics toolkit (mm, degrees at the CLI).")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -496,6 +615,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_sweep)
     dp = sub.add_parser("demo", help="the main job on the bundled default knee, with a Rerun recording")
     dp.add_argument("--out", default="knee-demo", help="output folder (a new one if it exists)")
+    dp.add_argument("--flexion", type=float, default=60.0, help="flexion of the virtual depth map, deg (60)")
+    dp.add_argument("--kinematics-only", action="store_true", help="only the sweep (no FEM)")
     dp.set_defaults(func=cmd_demo)
     ss = sub.add_parser("synth-subject", help="write a synthetic subject folder from a parameter set")
     ss.add_argument("out_dir", help="folder to create (must not exist or be empty)")
@@ -543,6 +664,21 @@ def build_parser() -> argparse.ArgumentParser:
     op.add_argument("--out", default="knee-osteotomy", help="output folder (knee-osteotomy)")
     op.add_argument("--force", action="store_true")
     op.set_defaults(func=cmd_osteotomy)
+    co = sub.add_parser("compare", help="the four ways to use the mechanism with the FEM, on standard cases")
+    co.add_argument("model", help="the prior: a bundled parameter set or a TOML file")
+    co.add_argument("--truth", help="parameter set generating the truth (default: MODEL, with the prior = MODEL "
+                                    "perturbed by --perturb)")
+    co.add_argument("--flexion", default="30:120:15", help="true flexion angles, FROM:TO:STEP or a list (30:120:15)")
+    co.add_argument("--cameras", default="oblique", help="oblique, frontal, lateral separated by commas, or "
+                                                         "entries AZ,EL,DIST separated by ';' (oblique)")
+    co.add_argument("--methods", default="paper,init,links,kinematics", help="which methods (all four)")
+    co.add_argument("--perturb", type=float, default=2.0, help="largest endpoint move of the default prior, mm (2)")
+    co.add_argument("--seed", type=int, default=3, help="seed of the perturbation and the depth noise (3)")
+    co.add_argument("--no-noise", action="store_true", help="no depth noise")
+    co.add_argument("--out", default="knee-compare", help="output folder (knee-compare)")
+    co.add_argument("--force", action="store_true", help="write into a non-empty output folder")
+    co.add_argument("--quiet", action="store_true", help="no progress bar")
+    co.set_defaults(func=cmd_compare)
     fe = sub.add_parser("fem", help="the association FEM model deformed toward a depth map (the paper's method)")
     fe.add_argument("model", help="the parameter set the model is built from (bundled name or TOML)")
     fe.add_argument("--flexion", type=float, default=90.0, help="flexion of the standard case's truth, deg (90)")

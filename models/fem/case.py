@@ -154,10 +154,11 @@ def case_points(truth: Mechanism, flexion_deg: float, camera: Camera, noise: Dep
     return backproject(depth, camera.K, camera.T_world_cam), tf
 
 
-def register_to_model(model: AssociationModel, points) -> tuple[np.ndarray, float]:
-    """Bring a point cloud (world/camera frame) to the model's frame by ICP of the seen thigh onto the
-    model's thigh; returns the points in the model frame and the ICP fitness. Raises on too few points
-    or a failed registration."""
+def register_to_model(model: AssociationModel, points) -> tuple[np.ndarray, float, np.ndarray]:
+    """Bring a point cloud (world/camera frame, roughly aligned with the model) to the model's frame by
+    ICP of the seen thigh onto the model's thigh (the thigh is held, so the femur is where the model has
+    it); returns the points in the model frame, the ICP fitness and the transform (4, 4) applied. Raises
+    on too few points or a failed registration."""
     pts = np.asarray(points, float)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < MIN_POINTS:
         raise KneeInputError(f"the point cloud has {len(pts) if pts.ndim == 2 else 0} points; at least {MIN_POINTS} "
@@ -173,7 +174,7 @@ def register_to_model(model: AssociationModel, points) -> tuple[np.ndarray, floa
     if fitness < MIN_ICP_FITNESS:
         raise KneeInputError(f"the registration of the point cloud to the model failed (ICP fitness {fitness:.2f}, "
                              f"below {MIN_ICP_FITNESS})")
-    return pts @ T_reg[:3, :3].T + T_reg[:3, 3], fitness
+    return pts @ T_reg[:3, :3].T + T_reg[:3, 3], fitness, T_reg
 
 
 def run_standard_case(mech: Mechanism, flexion_deg: float = 90.0, camera: Camera | None = None,
@@ -199,7 +200,7 @@ def run_standard_case(mech: Mechanism, flexion_deg: float = 90.0, camera: Camera
     else:
         pts, tf = np.asarray(points, float), truth_tf
         T_true = None if tf is None else joint_to_pose(np.asarray(tf, float))
-    pts, fitness = register_to_model(model, pts)
+    pts, fitness, _ = register_to_model(model, pts)
     targets = target_points(model, mech)
     fmap = TrilinearMapping(model.grid, targets.femur)
     tmap = TrilinearMapping(model.grid, targets.tibia)

@@ -7,8 +7,8 @@ One linear solve per step: with C = a M + b K and the forces linearised about th
 The matrix is never assembled per step: the conjugate-gradient solve applies the co-rotated element
 stiffnesses directly (gather, element products, scatter), warm-started from the last velocity and
 preconditioned with a sparse LU factorisation of the assembled matrix (symmetric mode, minimum-degree
-ordering of A + A^T, single-precision factors: a preconditioner needs no more, and the triangular solves
-read half the memory), warped by the nodes' rotations since it was computed. The factorisation is kept
+ordering of A + A^T: about half the fill and factorisation time of the default; single-precision factors
+were tried and cost more iterations after the prior's initialisation than they saved), warped by the nodes' rotations since it was computed. The factorisation is kept
 across steps and refreshed (assembled on the fixed pattern, refactorised) by an amortised rule: when the
 iterations spent beyond the count right after the last refresh add up to more than the cost of a
 refactorisation (``refresh_cost`` iterations), or when CG stops at ``max_iterations``.
@@ -100,7 +100,7 @@ class ImplicitEuler:
         K = sum((f.matrix() for f in self.fields), sp.csr_matrix((3 * len(self.m),) * 2))
         A = (sp.diags(np.repeat(self._cm * self.m, 3)) + self._ck * K).tocsr()
         P = sp.diags(self._free)
-        A = (P @ A @ P + sp.diags(1 - self._free)).tocsc().astype(np.float32)
+        A = (P @ A @ P + sp.diags(1 - self._free)).tocsc()
         self._lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                              options={"SymmetricMode": True})
         self._R_ref = None if self.node_rotations is None else self.node_rotations()
@@ -108,7 +108,7 @@ class ImplicitEuler:
         self.refreshes += 1
 
     def _lu_solve(self, r):
-        return self._lu.solve(r.astype(np.float32)).astype(float)
+        return self._lu.solve(r)
 
     def _preconditioner(self, n):
         if self.node_rotations is None:

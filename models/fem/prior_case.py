@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from models.fem.case import case_points, default_camera, run_standard_case, target_points
+from models.fem.case import case_points, default_camera, register_to_model, run_standard_case, target_points
 from models.fem.depth import DepthNoise
 from models.fem.fields import MappedSprings, affine_point_map
 from models.fem.forces import SurfaceForces
@@ -51,6 +51,7 @@ class MethodResult:
     wall_seconds: float
     converged: bool
     notes: list = field(default_factory=list)
+    surfaces: dict = field(default_factory=dict)  # bone -> final surface vertices (V, 3), world frame
 
 
 def bone_cell_nodes(model: AssociationModel):
@@ -128,45 +129,21 @@ def _evaluate(model, prior, truth_tf, x=None, T_femur=None, T_tibia=None, T_worl
     return out
 
 
-def run_method(method: str, truth: Mechanism, prior: Mechanism, flexion_deg: float, camera=None,
-               noise=DepthNoise(), seed: int = 0, max_steps: int = 80, model: AssociationModel | None = None,
-               progress=False) -> MethodResult:
-    """Run one method on one case (see the module docstring)."""
-    if method not in METHODS:
-        raise KneeInputError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
-    cam = camera or default_camera()
-    t0 = time.perf_counter()
-    if method == "paper":
-        r = run_standard_case(prior, flexion_deg, cam, noise, model=model or build_association_model(prior),
-                              seed=seed, progress=progress, truth=truth)
-        return MethodResult("paper", r.flexion_true_deg, r.flexion_estimated_deg, r.errors, r.steps, r.wall_seconds,
-                            r.converged)
-    model = model or build_association_model(prior)
-    t0 = time.perf_counter()  # the model is built once per prior, outside the per-case time
-    pts, truth_tf = _depth_points(truth, flexion_deg, cam, noise, seed, model.settings)
-    notes = []
-    est = estimate_flexion(prior, model.phantom, pts)
-    notes += est.warnings
-    if method == "kinematics":
-        tf, _ = prior.motion_at(np.array([est.flexion]))
-        errors = _evaluate(model, prior, truth_tf, T_femur=est.T_world_model,
-                           T_tibia=est.T_world_model @ joint_to_pose(tf[0]))
-        return MethodResult(method, flexion_deg, math.degrees(est.flexion), errors, 0, time.perf_counter() - t0,
-                            True, notes)
-    # the cloud in the model frame (the registration of the prior-posed skin)
-    pts_model = transform_points(invert_poses(est.T_world_model), pts)
-    steps = initialise_from_prior(model, prior, est.flexion)
+LINK_TOLERANCE = 4.0  # mm: beyond the prior's accuracy (2 mm per endpoint, so up to 4 mm on a length)
+
+
+def _surfaces_fem(model, x, T_world=None):
+    Tw = np.eye(4) if T_world is None else T_world
+    return {name: transform_points(Tw, TrilinearMapping(model.grid, np.asarray(m.vertices)).apply(x))
+            for name, m in (("femur", model.femur_surface), ("tibia", model.tibia_surface))}
+
+
+def _surface_phase(model, surf, max_steps, steps):
+    """Steps with the surface forces until the skin stops moving; returns (steps, converged)."""
     s = model.solver
-    surf = SurfaceForces(model.grid, model.skin_vertices, pts_model, k=2.0)
-    s.fields.append(surf)
-    links = None
-    if method == "links":
-        links = link_springs(model, prior)
-        s.fields.append(links)
-    s._lu = None
     skin_prev = surf.map.apply(s.x)
-    calm, converged = 0, False
-    for k in range(max_steps):
+    calm = 0
+    for _ in range(max_steps):
         s.step()
         steps += 1
         if not np.all(np.isfinite(s.x)):
@@ -176,33 +153,126 @@ def run_method(method: str, truth: Mechanism, prior: Mechanism, flexion_deg: flo
         skin_prev = skin
         calm = calm + 1 if motion < 0.02 else 0
         if calm >= 3:
-            converged = True
-            break
-    for f in (surf, links):
-        if f is not None and f in s.fields:
-            s.fields.remove(f)
+            return steps, True
+    return steps, False
+
+
+def run_method(method: str, truth: Mechanism, prior: Mechanism, flexion_deg: float, camera=None,
+               noise=DepthNoise(), seed: int = 0, max_steps: int = 80, model: AssociationModel | None = None,
+               progress=False, points=None) -> MethodResult:
+    """Run one method on one case (see the module docstring). ``points``: the case's depth points, when
+    already rendered (they are rendered from ``truth`` otherwise).
+
+    Fallbacks, each stated in the result's notes: when the flexion cannot be estimated from the point cloud
+    (too few points, too little of the shank seen), methods (ii) and (iii) fall back to the paper's method
+    and (iv) fails; when the FEM bones cannot satisfy the prior's links (a link more than 4 mm off its
+    length at convergence), (iii) releases the links and continues as (ii)."""
+    if method not in METHODS:
+        raise KneeInputError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    cam = camera or default_camera()
+    t0 = time.perf_counter()
+    notes = []
+    model = model or build_association_model(prior)
+    if points is None:
+        pts, truth_tf = _depth_points(truth, flexion_deg, cam, noise, seed, model.settings)
+    else:
+        pts, truth_tf = points, truth.solve(math.radians(flexion_deg))[0]
+    if method != "paper":
+        t0 = time.perf_counter()  # the model is built once per prior, outside the per-case time
+        try:
+            est = estimate_flexion(prior, model.phantom, pts)
+        except KneeInputError as e:
+            if method == "kinematics":
+                raise
+            notes.append(f"flexion not estimated ({e}); fallback: the paper's method")
+            method_run = "paper"
+        else:
+            method_run = method
+            notes += est.warnings
+    else:
+        method_run = "paper"
+    if method_run == "paper":
+        r = run_standard_case(prior, flexion_deg, cam, noise, model=model, seed=seed, progress=progress,
+                              truth=truth, points=pts, truth_tf=truth_tf)
+        return MethodResult(method, r.flexion_true_deg, r.flexion_estimated_deg, r.errors, r.steps,
+                            time.perf_counter() - t0, r.converged, notes, _surfaces_fem(model, model.solver.x))
+    if method == "kinematics":
+        tf, _ = prior.motion_at(np.array([est.flexion]))
+        T0 = joint_to_pose(prior.motion_at(np.array([0.0]))[0][0])
+        T_tib = est.T_world_model @ joint_to_pose(tf[0])
+        errors = _evaluate(model, prior, truth_tf, T_femur=est.T_world_model, T_tibia=T_tib)
+        surfaces = {"femur": transform_points(est.T_world_model, np.asarray(model.femur_surface.vertices)),
+                    "tibia": transform_points(T_tib @ invert_poses(T0), np.asarray(model.tibia_surface.vertices))}
+        return MethodResult(method, flexion_deg, math.degrees(est.flexion), errors, 0, time.perf_counter() - t0,
+                            True, notes, surfaces)
+    # the cloud in the model frame: the registration of the prior-posed skin, refined on the thigh alone
+    # (the thigh is held in the model, so the femur is placed by the thigh as in the paper's method)
+    pts_model, _, T_reg = register_to_model(model, transform_points(invert_poses(est.T_world_model), pts))
+    T_world = est.T_world_model @ invert_poses(T_reg)
+    steps = initialise_from_prior(model, prior, est.flexion)
+    s = model.solver
+    surf = SurfaceForces(model.grid, model.skin_vertices, pts_model, k=2.0)
+    s.fields.append(surf)
+    links = None
+    if method == "links":
+        links = link_springs(model, prior)
+        s.fields.append(links)
     s._lu = None
+    try:
+        steps, converged = _surface_phase(model, surf, max_steps, steps)
+        if links is not None:
+            off = np.abs(np.linalg.norm(links.mb.apply(s.x) - links.ma.apply(s.x), axis=1) - links.L0)
+            if off.max() > LINK_TOLERANCE:
+                names = [lk.name for lk in prior.params.links]
+                notes.append(f"the FEM bones do not satisfy the prior's links ({names[int(off.argmax())]} "
+                             f"{off.max():.2f} mm off its length); fallback: links released, continued as (ii)")
+                s.fields.remove(links)
+                links = None
+                s._lu = None
+                steps, converged = _surface_phase(model, surf, max_steps, steps)
+    finally:
+        for f in (surf, links):
+            if f is not None and f in s.fields:
+                s.fields.remove(f)
+        s._lu = None
     flex, _ = knee_angles(model)
-    errors = _evaluate(model, prior, truth_tf, x=s.x, T_world=est.T_world_model)
-    return MethodResult(method, flexion_deg, flex, errors, steps, time.perf_counter() - t0, converged, notes)
+    errors = _evaluate(model, prior, truth_tf, x=s.x, T_world=T_world)
+    return MethodResult(method, flexion_deg, flex, errors, steps, time.perf_counter() - t0, converged, notes,
+                        _surfaces_fem(model, s.x, T_world))
 
 
 def compare_cases(truth: Mechanism, prior: Mechanism, flexions_deg, cameras: dict, methods=METHODS,
-                  noise=DepthNoise(), seed: int = 0, progress=None) -> list[dict]:
+                  noise=DepthNoise(), seed: int = 0, progress=None, on_result=None) -> list[dict]:
     """Every method on every (flexion, camera) case; one row per run with the errors and timings.
-    ``cameras``: {name: Camera}. ``progress(text)`` is called before each run."""
+    ``cameras``: {name: Camera}. ``progress(done, total, text)`` is called before each run;
+    ``on_result(camera_name, flexion_deg, method, result, truth_tf)`` after each successful one. A case
+    whose flexion lies outside the truth's assembly range is reported as failed for every method."""
     rows = []
+    total = len(cameras) * len(flexions_deg) * len(methods)
+    done = 0
     for cam_name, cam in cameras.items():
         for fl in flexions_deg:
+            fl = float(fl)
+            if not truth.in_range(math.radians(fl)):
+                lo, hi = (math.degrees(v) for v in truth.assembly_range)
+                for method in methods:
+                    rows.append({"method": method, "camera": cam_name, "flexion_true_deg": fl,
+                                 "failed": f"{fl:g} deg is outside the truth's assembly range ({lo:.1f} to {hi:.1f})"})
+                done += len(methods)
+                continue
+            pts, truth_tf = case_points(truth, fl, cam, noise, seed)
             for method in methods:
                 if progress:
-                    progress(f"{method} at {fl:g} deg, camera {cam_name}")
+                    progress(done, total, f"{method} at {fl:g} deg, camera {cam_name}")
+                done += 1
                 try:
-                    r = run_method(method, truth, prior, float(fl), cam, noise, seed,
-                                   model=None if method == "kinematics" else build_association_model(prior))
+                    r = run_method(method, truth, prior, fl, cam, noise, seed, points=pts,
+                                   model=build_association_model(prior))
                 except KneeInputError as e:
                     rows.append({"method": method, "camera": cam_name, "flexion_true_deg": fl, "failed": str(e)})
                     continue
+                if on_result:
+                    on_result(cam_name, fl, method, r, truth_tf)
                 rows.append({"method": method, "camera": cam_name, "flexion_true_deg": fl,
                              "flexion_estimated_deg": r.flexion_estimated_deg,
                              "femur_footprints_mm": r.errors["femur"]["footprints"][0],
@@ -211,4 +281,6 @@ def compare_cases(truth: Mechanism, prior: Mechanism, flexions_deg, cameras: dic
                              "tibia_epiphysis_mm": r.errors["tibia"]["epiphysis"][0],
                              "steps": r.steps, "wall_seconds": r.wall_seconds, "converged": r.converged,
                              "notes": "; ".join(r.notes), "failed": ""})
+    if progress:
+        progress(total, total, "done")
     return rows

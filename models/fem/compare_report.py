@@ -1,0 +1,182 @@
+"""Outputs of ``knee compare``: the table (CSV and Markdown), the plot of error against flexion for the
+four methods, and a Rerun recording in which each method's bones can be toggled against the truth.
+
+Recording layout: one ``case`` step per (camera, flexion) case; ``compare/truth/{femur,tibia}`` are the true
+bones, ``compare/<method>/{femur,tibia}`` each method's final bones (world frame, mm), ``compare/depth``
+the case's depth points; ``metrics/<method>/footprints_mm`` the mean footprint error of each case.
+Toggle a method's entity in the viewer's blueprint tree to show or hide it.
+"""
+
+from __future__ import annotations
+
+import csv
+import statistics
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from toolkit import recording as R
+
+METHOD_LABELS = {"paper": "(i) paper: bone forces + surface forces",
+                 "init": "(ii) prior as initialisation",
+                 "links": "(iii) initialisation + the prior's links",
+                 "kinematics": "(iv) kinematics alone"}
+METHOD_COLOURS = {"paper": (220, 60, 60), "init": (240, 170, 40), "links": (40, 170, 90),
+                  "kinematics": (70, 120, 230)}
+COLUMNS = ["camera", "flexion_true_deg", "method", "flexion_estimated_deg", "femur_footprints_mm",
+           "tibia_footprints_mm", "femur_epiphysis_mm", "tibia_epiphysis_mm", "steps", "wall_seconds", "converged",
+           "notes", "failed"]
+
+
+def footprint_error(row: dict) -> float:
+    """Mean of the femur and tibia footprint errors of a row (mm)."""
+    return 0.5 * (row["femur_footprints_mm"] + row["tibia_footprints_mm"])
+
+
+def summary(rows: list[dict], methods) -> dict:
+    """Per method: cases, median footprint error (mm), median epiphysis error, median wall time (s),
+    median |flexion error| (deg), failures."""
+    out = {}
+    for m in methods:
+        ok = [r for r in rows if r["method"] == m and not r.get("failed")]
+        out[m] = {"cases": len(ok), "failed": sum(1 for r in rows if r["method"] == m and r.get("failed")),
+                  "footprints_mm": statistics.median(footprint_error(r) for r in ok) if ok else float("nan"),
+                  "epiphysis_mm": statistics.median(0.5 * (r["femur_epiphysis_mm"] + r["tibia_epiphysis_mm"])
+                                                    for r in ok) if ok else float("nan"),
+                  "wall_s": statistics.median(r["wall_seconds"] for r in ok) if ok else float("nan"),
+                  "flexion_error_deg": statistics.median(abs(r["flexion_estimated_deg"] - r["flexion_true_deg"])
+                                                         for r in ok) if ok else float("nan")}
+    return out
+
+
+def targets_check(summ: dict) -> list[str]:
+    """The issue's three numbers for method (iii), each as a line with met / NOT met."""
+    lines = []
+    if "links" in summ and summ["links"]["cases"]:
+        fp, wall = summ["links"]["footprints_mm"], summ["links"]["wall_s"]
+        lines.append(f"(iii) median footprint error {fp:.2f} mm (target <= 2 mm): {'met' if fp <= 2 else 'NOT met'}")
+        if "paper" in summ and summ["paper"]["cases"]:
+            ratio = summ["paper"]["footprints_mm"] / fp if fp > 0 else float("inf")
+            lines.append(f"(iii) {ratio:.1f}x lower than (i) (target >= 2x): {'met' if ratio >= 2 else 'NOT met'}")
+        lines.append(f"(iii) median wall time {wall:.1f} s per case (target <= 5 s): {'met' if wall <= 5 else 'NOT met'}")
+    return lines
+
+
+def write_csv(rows: list[dict], path) -> None:
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.DictWriter(fh, fieldnames=COLUMNS, extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in r.items()})
+
+
+def markdown(rows: list[dict], methods, title: str) -> str:
+    summ = summary(rows, methods)
+    lines = [f"# {title}", "",
+             "Target point errors: mean distance (mm) between the estimated and the true bone surface points, "
+             "ACL/PCL footprints and the whole epiphysis, per bone.", "",
+             "| camera | flexion | method | estimate (deg) | femur footprints | tibia footprints | femur epiphysis | "
+             "tibia epiphysis | steps | wall (s) | converged | notes |",
+             "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|---|"]
+    for r in rows:
+        if r.get("failed"):
+            lines.append(f"| {r['camera']} | {r['flexion_true_deg']:g} | {r['method']} | failed: {r['failed']} "
+                         f"| | | | | | | | |")
+            continue
+        lines.append(f"| {r['camera']} | {r['flexion_true_deg']:g} | {r['method']} | {r['flexion_estimated_deg']:.1f} | "
+                     f"{r['femur_footprints_mm']:.2f} | {r['tibia_footprints_mm']:.2f} | {r['femur_epiphysis_mm']:.2f} | "
+                     f"{r['tibia_epiphysis_mm']:.2f} | {r['steps']} | {r['wall_seconds']:.1f} | {r['converged']} | "
+                     f"{r.get('notes', '')} |")
+    lines += ["", "## Summary (medians over the cases)", "",
+              "| method | cases | failed | footprints (mm) | epiphysis (mm) | flexion error (deg) | wall (s) |",
+              "|---|---:|---:|---:|---:|---:|---:|"]
+    for m, v in summ.items():
+        lines.append(f"| {METHOD_LABELS.get(m, m)} | {v['cases']} | {v['failed']} | {v['footprints_mm']:.2f} | "
+                     f"{v['epiphysis_mm']:.2f} | {v['flexion_error_deg']:.2f} | {v['wall_s']:.1f} |")
+    checks = targets_check(summ)
+    if checks:
+        lines += [""] + [f"- {c}" for c in checks]
+    return "\n".join(lines) + "\n"
+
+
+def plot(rows: list[dict], methods, path, title: str = "") -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cams = sorted({r["camera"] for r in rows})
+    styles = ["-o", "--s", ":^", "-.v"]
+    fig, ax = plt.subplots(1, 2, figsize=(12, 4.5), sharex=True)
+    for m in methods:
+        col = np.array(METHOD_COLOURS.get(m, (0, 0, 0))) / 255
+        for ci, cam in enumerate(cams):
+            ok = sorted((r for r in rows if r["method"] == m and r["camera"] == cam and not r.get("failed")),
+                        key=lambda r: r["flexion_true_deg"])
+            if not ok:
+                continue
+            fl = [r["flexion_true_deg"] for r in ok]
+            label = METHOD_LABELS.get(m, m) + (f" [{cam}]" if len(cams) > 1 else "")
+            ax[0].plot(fl, [footprint_error(r) for r in ok], styles[ci % 4], color=col, label=label)
+            ax[1].plot(fl, [0.5 * (r["femur_epiphysis_mm"] + r["tibia_epiphysis_mm"]) for r in ok], styles[ci % 4],
+                       color=col)
+    ax[0].axhline(2.0, color="grey", lw=0.8, ls=":")
+    ax[0].set_title("ACL/PCL footprint error (mean of femur and tibia)")
+    ax[1].set_title("epiphysis error (mean of femur and tibia)")
+    for a in ax:
+        a.set_xlabel("true flexion (deg)")
+        a.set_ylabel("mm")
+        a.set_yscale("log")
+        a.grid(alpha=0.3)
+    ax[0].legend(fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def compare_blueprint(methods) -> rrb.Blueprint:
+    return rrb.Blueprint(rrb.Horizontal(
+        rrb.Spatial3DView(origin="compare", name="Bones: truth and the methods (toggle in the tree)"),
+        rrb.TimeSeriesView(origin="metrics", name="Footprint error per case (mm)"),
+        column_shares=[3, 2]), collapse_panels=True)
+
+
+class CompareRecorder:
+    """``on_result`` callback of :func:`models.fem.prior_case.compare_cases` writing the recording."""
+
+    def __init__(self, path, truth_phantom, faces: dict, methods):
+        self.rec = R.new_recording()
+        R.save(self.rec, path, compare_blueprint(methods))
+        self.rec.log("compare", rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
+        self.phantom = truth_phantom
+        self.faces = {k: np.asarray(v, np.uint32) for k, v in faces.items()}
+        self.cases: dict = {}
+
+    def __call__(self, cam_name, flexion_deg, method, result, truth_tf) -> None:
+        from toolkit.conventions import joint_to_pose
+
+        key = (cam_name, flexion_deg)
+        if key not in self.cases:
+            self.cases[key] = len(self.cases)
+            self.rec.set_time("case", sequence=self.cases[key])
+            ph = self.phantom
+            tib = ph.tibia.copy().apply_transform(joint_to_pose(truth_tf))
+            for name, mesh in (("femur", ph.femur), ("tibia", tib)):
+                self.rec.log(f"compare/truth/{name}", rr.Mesh3D(
+                    vertex_positions=np.asarray(mesh.vertices, np.float32),
+                    triangle_indices=np.asarray(mesh.faces, np.uint32), albedo_factor=(235, 235, 235, 120)))
+            self.rec.log("compare/case", rr.TextDocument(f"camera {cam_name}, true flexion {flexion_deg:g} deg"))
+        self.rec.set_time("case", sequence=self.cases[key])
+        col = METHOD_COLOURS.get(method, (128, 128, 128))
+        for name, v in result.surfaces.items():
+            self.rec.log(f"compare/{method}/{name}", rr.Mesh3D(vertex_positions=np.asarray(v, np.float32),
+                                                               triangle_indices=self.faces[name], albedo_factor=col))
+        e = result.errors
+        self.rec.log(f"metrics/{method}/footprints_mm",
+                     rr.Scalars(0.5 * (e["femur"]["footprints"][0] + e["tibia"]["footprints"][0])))
+
+    def finish(self) -> None:
+        self.rec.flush()
+        self.rec.disconnect()
