@@ -88,6 +88,15 @@ def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: floa
     kept += model.tibia.el.rebase(model.tibia.bone_positions(x))
     model.contact.rebase(x)
     model.inverted_at_init = kept
+    # grid nodes left with no element at all (every cell around them was dropped, and no bone node is
+    # embedded next to them) carry only their tiny mass: held still, they stay out of the solve, which
+    # otherwise sees a million-fold change of their diagonal whenever a surface spring switches on them
+    alive = np.zeros(len(X), bool)
+    alive[model.grid.cells[np.any(model.soft.el.K.reshape(len(model.soft.el.K), -1) != 0, axis=1)].ravel()] = True
+    for bone in (model.femur, model.tibia):
+        alive[np.unique(bone.map.J.indices)] = True
+    s.fixed = s.fixed | ~alive
+    model.isolated_at_init = int((~alive).sum())
     s._set_prescribed(None)
     s._lu = None
     return steps
