@@ -226,7 +226,7 @@ class FitResult:
     cost_final: float
     evaluations: int
     seconds: float
-    mae: np.ndarray  # (5,) of the fitted model vs the measured motion: deg, deg, mm, mm, mm
+    mae: np.ndarray  # of the fitted model vs the measured motion: TF (5,) deg, deg, mm, mm, mm; PF (6,)
 
 
 def two_stage(prob, n_var: int, seed: int = 0, global_stage: bool = True, popsize: int = 12, maxiter: int = 15,

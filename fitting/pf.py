@@ -20,11 +20,10 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
-from fitting.optimize import NOISE_SD, Motion, MotionFit, _ball, _stderr_progress, dense_grid, two_stage
+from fitting.optimize import NOISE_SD, FitResult, Motion, MotionFit, _ball, _stderr_progress, dense_grid, two_stage
 from models.mechanism.params import N_LINKS, LINK_SIZE, MechanismParams
 from models.mechanism.solver import Mechanism, pf_sensitivities, quick_pf_sweep
 from toolkit.errors import AssemblyError, KneeInputError
@@ -141,16 +140,7 @@ class PFFit(MotionFit):
         return dq.reshape(-1, p.size) @ D
 
 
-@dataclass
-class PFFitResult:
-    params: MechanismParams
-    w: np.ndarray
-    cost_first: float
-    cost_global: float
-    cost_final: float
-    evaluations: int
-    seconds: float
-    mae: np.ndarray  # (6,): deg x3, mm x3, fitted model vs measured
+PFFitResult = FitResult  # the same fields; ``mae`` (6,): deg x3, mm x3, fitted model vs measured
 
 
 def fit_pf(params: MechanismParams, motion: Motion, seed: int = 0, global_stage: bool = True, popsize: int = 10,

@@ -49,7 +49,7 @@ def run_demo_comparison(out_dir: Path, flexion_deg: float = 60.0, seed: int = 3,
     ``out_dir``; returns {"rows", "summary", "seconds"}."""
     from models.fem.case import truth_phantom
     from models.fem.compare_report import CompareRecorder, markdown, plot, summary, write_csv
-    from models.fem.scene import build_association_model
+    from models.fem.prior_case import result_row
 
     t0 = time.perf_counter()
     results = {}
@@ -71,21 +71,12 @@ def run_demo_comparison(out_dir: Path, flexion_deg: float = 60.0, seed: int = 3,
             else:
                 os.environ[k] = v
     truth, prior = _case(seed, perturb)
-    probe = build_association_model(prior)
-    faces = {"femur": probe.femur_surface.faces, "tibia": probe.tibia_surface.faces}
-    rec = CompareRecorder(out_dir / "compare.rrd", truth_phantom(truth), faces, DEMO_METHODS)
+    rec = CompareRecorder(out_dir / "compare.rrd", truth_phantom(truth), truth_phantom(prior), DEMO_METHODS)
     rows = []
     for m in DEMO_METHODS:
         r, tf = results[m]
         rec("oblique", flexion_deg, m, r, tf)
-        rows.append({"method": m, "camera": "oblique", "flexion_true_deg": flexion_deg,
-                     "flexion_estimated_deg": r.flexion_estimated_deg,
-                     "femur_footprints_mm": r.errors["femur"]["footprints"][0],
-                     "tibia_footprints_mm": r.errors["tibia"]["footprints"][0],
-                     "femur_epiphysis_mm": r.errors["femur"]["epiphysis"][0],
-                     "tibia_epiphysis_mm": r.errors["tibia"]["epiphysis"][0],
-                     "steps": r.steps, "wall_seconds": r.wall_seconds, "converged": r.converged,
-                     "notes": "; ".join(r.notes), "failed": ""})
+        rows.append(result_row("oblique", flexion_deg, r))
     rec.finish()
     title = (f"knee demo: volunteer at {flexion_deg:g} deg, oblique camera; prior = volunteer with TF endpoints "
              f"moved {0.5 * perturb:g}-{perturb:g} mm")

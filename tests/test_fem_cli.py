@@ -151,3 +151,40 @@ def test_bone_nodes_outside_the_grid_are_counted(fem_model):
     X[:3] += np.array([500.0, 0.0, 0.0])  # three nodes far outside the skin
     with pytest.raises(KneeInputError, match="3 of .* femur nodes lie outside"):
         MappedBoneElasticity(fem_model.grid, X, fem_model.femur.el.cells, name="femur")
+
+
+def test_target_errors_closed_form(fem_model, volunteer):
+    """At the model's own extension pose the true tibia points are the model's; estimates moved by a
+    translation d are |d| off at every point (sd 0)."""
+    from models.fem.case import target_errors, truth_targets
+
+    targets, tf, tt = truth_targets(fem_model, volunteer, volunteer.solve(0.0)[0])
+    np.testing.assert_allclose(tt, targets.tibia, atol=1e-9)
+    np.testing.assert_array_equal(tf, targets.femur)
+    d = np.array([3.0, 4.0, 0.0])
+    errors, dist = target_errors(targets, tf + d, tt + d, tf, tt)
+    for bone in ("femur", "tibia"):
+        for part in ("footprints", "epiphysis"):
+            assert errors[bone][part][0] == pytest.approx(5.0, abs=1e-12)
+            assert errors[bone][part][1] == pytest.approx(0.0, abs=1e-12)
+        np.testing.assert_allclose(dist[bone], 5.0)
+
+
+def test_dropped_cells_are_not_counted_as_inverted(volunteer):
+    """Cells dropped at a re-reference (inverted there) carry no stiffness: the divergence check skips them."""
+    from models.fem.case import check_state
+    from models.fem.elements import hex_inverted
+    from models.fem.scene import build_association_model
+
+    model = build_association_model(volunteer)
+    g = model.grid
+    x = g.X.copy()
+    node = np.argsort(np.linalg.norm(g.X - g.X.mean(0), axis=1))[0]  # an interior node
+    x[node] += np.array([0.0, 40.0, 0.0])                               # pushed through its neighbours
+    bad = hex_inverted(x[g.cells])
+    assert 0 < bad.sum() < 0.05 * len(g.cells)
+    assert model.soft.el.rebase(x) == bad.sum()
+    np.testing.assert_array_equal(model.soft.el.alive, ~bad)
+    model.solver.x = x
+    extent = float(np.ptp(g.X, axis=0).max())
+    assert check_state(model, 1, extent) == 0

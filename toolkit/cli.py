@@ -337,13 +337,7 @@ def cmd_contact(args) -> int:
 
 
 def _six(text: str, what: str) -> tuple[np.ndarray, np.ndarray]:
-    try:
-        v = np.array([float(x) for x in text.split(",")])
-    except ValueError:
-        v = np.zeros(0)
-    if v.size != 6 or not np.all(np.isfinite(v)):
-        raise KneeInputError(f"{what} must be six comma-separated numbers (point x,y,z then direction x,y,z in mm), "
-                             f"got {text!r}")
+    v = _numbers(text, 6, what, " (point x,y,z then direction x,y,z in mm)")
     return v[:3], v[3:]
 
 
@@ -383,13 +377,14 @@ def cmd_osteotomy(args) -> int:
     return 0
 
 
-def _numbers(text: str, n: int, what: str) -> np.ndarray:
+def _numbers(text: str, n: int, what: str, hint: str = "") -> np.ndarray:
+    """``n`` finite comma-separated numbers, or a one-line error naming ``what``."""
     try:
         v = np.array([float(x) for x in str(text).split(",")])
     except ValueError:
         v = np.zeros(0)
     if v.size != n or not np.all(np.isfinite(v)):
-        raise KneeInputError(f"{what} must be {n} comma-separated numbers, got {text!r}")
+        raise KneeInputError(f"{what} must be {n} comma-separated numbers{hint}, got {text!r}")
     return v
 
 
@@ -422,13 +417,13 @@ def _measured_points(args):
 
 
 def cmd_fem(args) -> int:
-    from models.fem.case import (FemDivergence, camera_from_spec, case_points, run_standard_case, target_points,
-                                 truth_phantom)
+    from models.fem.case import (FemDivergence, camera_from_spec, case_points, run_standard_case, truth_phantom,
+                                 truth_targets)
     from models.fem.depth import DepthNoise
     from models.fem.scene import FemSettings, build_association_model
     from models.fem.views import FemRecorder
     from models.mechanism import Mechanism
-    from toolkit.conventions import invert_poses, joint_to_pose, transform_points
+    from toolkit.conventions import joint_to_pose
 
     rrd = Path(args.rrd) if args.rrd else None
     _check_new(rrd, args.force)
@@ -455,13 +450,9 @@ def cmd_fem(args) -> int:
         pts, truth_tf = case_points(truth, args.flexion, cam, DepthNoise() if not args.no_noise else None,
                                     args.seed, model.settings)
         ph_t = truth_phantom(truth, model.settings)
-        T_true = joint_to_pose(truth_tf)
-        targets = target_points(model, mech)
-        T0 = joint_to_pose(mech.solve(0.0)[0])
-        truth_info = {"femur": targets.femur, "tibia": transform_points(T_true @ invert_poses(T0), targets.tibia),
-                      "femur_fp": targets.femur_footprints, "tibia_fp": targets.tibia_footprints,
-                      "targets": (targets.femur, targets.tibia),
-                      "meshes": {"femur": ph_t.femur, "tibia": ph_t.tibia.copy().apply_transform(T_true)}}
+        targets, truth_f, truth_t = truth_targets(model, mech, truth_tf)
+        truth_info = {"targets": targets, "femur": truth_f, "tibia": truth_t,
+                      "meshes": {"femur": ph_t.femur, "tibia": ph_t.tibia.copy().apply_transform(joint_to_pose(truth_tf))}}
         print(f"  case: {truth.params.name} at {args.flexion:g} deg seen by the {args.camera} camera, "
               f"{len(pts)} depth points", file=sys.stderr)
     else:
@@ -546,7 +537,6 @@ def cmd_compare(args) -> int:
     from models.fem.compare_report import CompareRecorder, markdown, plot, summary, targets_check, write_csv
     from models.fem.depth import DepthNoise
     from models.fem.prior_case import METHODS, compare_cases
-    from models.fem.scene import build_association_model
     from models.mechanism import Mechanism
     from models.mechanism.params import load_model
 
@@ -571,9 +561,7 @@ def cmd_compare(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     print(f"knee compare: {origin}; {len(flexions)} flexion angles x {len(cams)} camera(s) x {len(methods)} methods",
           file=sys.stderr)
-    probe = build_association_model(prior)
-    faces = {"femur": probe.femur_surface.faces, "tibia": probe.tibia_surface.faces}
-    recorder = CompareRecorder(out / "compare.rrd", truth_phantom(truth), faces, methods)
+    recorder = CompareRecorder(out / "compare.rrd", truth_phantom(truth), truth_phantom(prior), methods)
     bar = ProgressBar()
     progress = None if args.quiet else (lambda i, n, t: bar(i / n, t))
     try:

@@ -58,7 +58,8 @@ def camera_from_spec(text: str) -> Camera:
 
 
 def truth_phantom(mech: Mechanism, settings: FemSettings | None = None):
-    """The phantom of the parameter set that generates a case's truth, built like the model's."""
+    """The phantom of a parameter set built like the association model's (the truth's bones of a case, or
+    the bones a prior's model is built from)."""
     from models.phantom import build_phantom
 
     s = settings or FemSettings()
@@ -108,6 +109,29 @@ def target_points(model: AssociationModel, mech: Mechanism, footprint_radius=10.
     return TargetPoints(fe, te, ffp, tfp)
 
 
+def truth_targets(model: AssociationModel, mech: Mechanism, truth_tf):
+    """The target points of ``model`` (built from ``mech``) and where they truly are: the femur's at
+    rest, the tibia's moved from the model's extension pose to the true TF pose ``truth_tf``.
+    Returns (TargetPoints, true femur points, true tibia points)."""
+    targets = target_points(model, mech)
+    T0 = joint_to_pose(mech.solve(0.0)[0])
+    truth_t = transform_points(joint_to_pose(np.asarray(truth_tf, float)) @ invert_poses(T0), targets.tibia)
+    return targets, targets.femur, truth_t
+
+
+def target_errors(targets: TargetPoints, est_f, est_t, truth_f, truth_t):
+    """Per bone {"footprints": (mean, sd), "epiphysis": (mean, sd)} (mm) of the distances between the
+    estimated and true target points, and the distances themselves {bone: (P,)}."""
+    out, dist = {}, {}
+    for bone, est, tru, fp in (("femur", est_f, truth_f, targets.femur_footprints),
+                               ("tibia", est_t, truth_t, targets.tibia_footprints)):
+        d = np.linalg.norm(np.asarray(est) - np.asarray(tru), axis=1)
+        out[bone] = {"footprints": (float(d[fp].mean()), float(d[fp].std())),
+                     "epiphysis": (float(d.mean()), float(d.std()))}
+        dist[bone] = d
+    return out, dist
+
+
 class FemDivergence(KneeInputError):
     """The simulation stopped: non-finite values, inverted elements or an energy blow-up at ``step``."""
 
@@ -123,8 +147,8 @@ MAX_INVERTED_FRACTION = 0.05
 
 def check_state(model: AssociationModel, step: int, x0_extent: float) -> int:
     """Stop with :class:`FemDivergence` (naming the step) on non-finite positions, an energy blow-up (a node
-    moved more than twice the model's extent, or faster than 20 m/s) or more than 5 % of the grid's cells
-    inverted; returns the number of inverted cells."""
+    moved more than twice the model's extent, or faster than 20 m/s) or more than 5 % of the grid's (not
+    dropped) cells inverted; returns the number of inverted cells."""
     s = model.solver
     if not (np.all(np.isfinite(s.x)) and np.all(np.isfinite(s.v))):
         raise FemDivergence(f"the FEM diverged at step {step}: non-finite positions or velocities", step)
@@ -133,10 +157,11 @@ def check_state(model: AssociationModel, step: int, x0_extent: float) -> int:
     if disp > 2.0 * x0_extent or speed > 2.0e4:
         raise FemDivergence(f"the FEM diverged at step {step}: energy blow-up (largest displacement {disp:.0f} mm, "
                             f"largest speed {speed:.0f} mm/s)", step)
-    inverted = int(hex_inverted(s.x[model.grid.cells]).sum())
+    alive = model.soft.el.alive  # cells dropped at a re-reference carry no stiffness and are not counted
+    inverted = int(hex_inverted(s.x[model.grid.cells[alive]]).sum())
     model.inverted_cells = inverted
-    if inverted > MAX_INVERTED_FRACTION * len(model.grid.cells):
-        raise FemDivergence(f"the FEM diverged at step {step}: {inverted} of {len(model.grid.cells)} grid cells "
+    if inverted > MAX_INVERTED_FRACTION * alive.sum():
+        raise FemDivergence(f"the FEM diverged at step {step}: {inverted} of {int(alive.sum())} grid cells "
                             f"inverted", step)
     return inverted
 
@@ -196,10 +221,8 @@ def run_standard_case(mech: Mechanism, flexion_deg: float = 90.0, camera: Camera
     cam = camera or default_camera()
     if points is None:
         pts, tf = case_points(tmech, flexion_deg, cam, noise, seed, model.settings)
-        T_true = joint_to_pose(tf)
     else:
         pts, tf = np.asarray(points, float), truth_tf
-        T_true = None if tf is None else joint_to_pose(np.asarray(tf, float))
     pts, fitness, _ = register_to_model(model, pts)
     targets = target_points(model, mech)
     fmap = TrilinearMapping(model.grid, targets.femur)
@@ -255,17 +278,9 @@ def run_standard_case(mech: Mechanism, flexion_deg: float = 90.0, camera: Camera
     flex, _ = knee_angles(model)
     est_f, est_t = fmap.apply(s.x), tmap.apply(s.x)
     errors, distances = {}, {}
-    if T_true is not None:
-        T0 = joint_to_pose(mech.solve(0.0)[0])
-        truth_f = targets.femur
-        truth_t = transform_points(T_true @ invert_poses(T0), targets.tibia)
-        df = np.linalg.norm(est_f - truth_f, axis=1)
-        dt_ = np.linalg.norm(est_t - truth_t, axis=1)
-        errors = {"femur": {"footprints": (float(df[targets.femur_footprints].mean()), float(df[targets.femur_footprints].std())),
-                            "epiphysis": (float(df.mean()), float(df.std()))},
-                  "tibia": {"footprints": (float(dt_[targets.tibia_footprints].mean()), float(dt_[targets.tibia_footprints].std())),
-                            "epiphysis": (float(dt_.mean()), float(dt_.std()))}}
-        distances = {"femur": df, "tibia": dt_}
+    if tf is not None:
+        _, truth_f, truth_t = truth_targets(model, mech, tf)
+        errors, distances = target_errors(targets, est_f, est_t, truth_f, truth_t)
     return CaseResult(flexion_true_deg=float(np.degrees(tf[0])) if tf is not None else float("nan"),
                       flexion_estimated_deg=flex, errors=errors,
                       steps=len(hist["step"]), steps_bone_phase=bone_steps,

@@ -146,12 +146,14 @@ def compare_blueprint(methods) -> rrb.Blueprint:
 class CompareRecorder:
     """``on_result`` callback of :func:`models.fem.prior_case.compare_cases` writing the recording."""
 
-    def __init__(self, path, truth_phantom, faces: dict, methods):
+    def __init__(self, path, truth_phantom, prior_phantom, methods):
+        """``truth_phantom``: the bones of the truth; ``prior_phantom``: those the methods' models are built
+        from (their faces go with the surfaces in the results)."""
         self.rec = R.new_recording()
         R.save(self.rec, path, compare_blueprint(methods))
         self.rec.log("compare", rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
         self.phantom = truth_phantom
-        self.faces = {k: np.asarray(v, np.uint32) for k, v in faces.items()}
+        self.faces = {k: np.asarray(getattr(prior_phantom, k).faces, np.uint32) for k in ("femur", "tibia")}
         self.cases: dict = {}
 
     def __call__(self, cam_name, flexion_deg, method, result, truth_tf) -> None:

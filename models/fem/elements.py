@@ -183,6 +183,7 @@ class CorotationalElements:
         self.Xe = self.X[self.cells]  # per-element rest coordinates (E, n, 3)
         self._F0 = self._frames(self.Xe)
         self.R = np.broadcast_to(np.eye(3), (len(self.cells), 3, 3)).copy()
+        self.alive = np.ones(len(self.cells), bool)  # False for elements dropped by :meth:`rebase`
 
     @property
     def n_nodes_per_element(self) -> int:
@@ -204,6 +205,7 @@ class CorotationalElements:
         K[ok] = stiff(x, self.cells[ok], self._D) * self._w[ok, None, None]
         if drop_inverted:
             K[~ok] = 0.0
+            self.alive = self.alive & ok
         self.K = K
         Xe = self.Xe.copy()
         Xe[ok] = xe[ok]

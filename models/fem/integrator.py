@@ -107,17 +107,14 @@ class ImplicitEuler:
         self._best_iterations, self._excess = None, 0.0
         self.refreshes += 1
 
-    def _lu_solve(self, r):
-        return self._lu.solve(r)
-
     def _preconditioner(self, n):
         if self.node_rotations is None:
-            return spla.LinearOperator((n, n), matvec=self._lu_solve, dtype=float)
+            return spla.LinearOperator((n, n), matvec=self._lu.solve, dtype=float)
         W = self.node_rotations() @ np.swapaxes(self._R_ref, 1, 2)  # (N, 3, 3)
         Wt = np.swapaxes(W, 1, 2)
 
         def apply(r):
-            z = self._lu_solve((Wt @ r.reshape(-1, 3, 1)).ravel())
+            z = self._lu.solve((Wt @ r.reshape(-1, 3, 1)).ravel())
             return (W @ z.reshape(-1, 3, 1)).ravel()
 
         return spla.LinearOperator((n, n), matvec=apply, dtype=float)

@@ -27,7 +27,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from models.fem.case import case_points, default_camera, register_to_model, run_standard_case, target_points
+from models.fem.case import (case_points, check_state, default_camera, register_to_model, run_standard_case, target_errors,
+                             truth_targets)
 from models.fem.depth import DepthNoise
 from models.fem.fields import MappedSprings, affine_point_map
 from models.fem.forces import SurfaceForces
@@ -92,7 +93,7 @@ def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: floa
     # embedded next to them) carry only their tiny mass: held still, they stay out of the solve, which
     # otherwise sees a million-fold change of their diagonal whenever a surface spring switches on them
     alive = np.zeros(len(X), bool)
-    alive[model.grid.cells[np.any(model.soft.el.K.reshape(len(model.soft.el.K), -1) != 0, axis=1)].ravel()] = True
+    alive[model.grid.cells[model.soft.el.alive].ravel()] = True
     for bone in (model.femur, model.tibia):
         alive[np.unique(bone.map.J.indices)] = True
     s.fixed = s.fixed | ~alive
@@ -111,31 +112,19 @@ def link_springs(model: AssociationModel, prior: Mechanism, k: float = 1000.0):
     return MappedSprings(model.grid, a, b, k, rest_length=[lk.length for lk in prior.params.links], maps=maps)
 
 
-def _depth_points(truth: Mechanism, flexion_deg, camera, noise, seed, settings=None):
-    return case_points(truth, flexion_deg, camera, noise, seed, settings)
-
-
 def _evaluate(model, prior, truth_tf, x=None, T_femur=None, T_tibia=None, T_world=None):
     """Target point errors in the world (camera scene) frame: from the FEM state ``x`` (model frame, taken
     to the world by ``T_world``), or from world bone poses (method iv)."""
-    targets = target_points(model, prior)
-    T0 = joint_to_pose(prior.motion_at(np.array([0.0]))[0][0])
-    T_true = joint_to_pose(truth_tf)
-    truth_f = targets.femur
-    truth_t = transform_points(T_true @ invert_poses(T0), targets.tibia)
+    targets, truth_f, truth_t = truth_targets(model, prior, truth_tf)
     if x is not None:
         Tw = np.eye(4) if T_world is None else T_world
         est_f = transform_points(Tw, TrilinearMapping(model.grid, targets.femur).apply(x))
         est_t = transform_points(Tw, TrilinearMapping(model.grid, targets.tibia).apply(x))
     else:
+        T0 = joint_to_pose(prior.solve(0.0)[0])
         est_f = transform_points(T_femur, targets.femur)
         est_t = transform_points(T_tibia @ invert_poses(T0), targets.tibia)
-    out = {}
-    for bone, est, tru, fp in (("femur", est_f, truth_f, targets.femur_footprints),
-                               ("tibia", est_t, truth_t, targets.tibia_footprints)):
-        d = np.linalg.norm(est - tru, axis=1)
-        out[bone] = {"footprints": (float(d[fp].mean()), float(d[fp].std())), "epiphysis": (float(d.mean()), float(d.std()))}
-    return out
+    return target_errors(targets, est_f, est_t, truth_f, truth_t)[0]
 
 
 LINK_TOLERANCE = 4.0  # mm: beyond the prior's accuracy (2 mm per endpoint, so up to 4 mm on a length)
@@ -151,12 +140,12 @@ def _surface_phase(model, surf, max_steps, steps):
     """Steps with the surface forces until the skin stops moving; returns (steps, converged)."""
     s = model.solver
     skin_prev = surf.map.apply(s.x)
+    extent = float(np.ptp(model.grid.X, axis=0).max())
     calm = 0
     for _ in range(max_steps):
         s.step()
         steps += 1
-        if not np.all(np.isfinite(s.x)):
-            raise KneeInputError(f"the FEM diverged at step {steps} (non-finite positions)")
+        check_state(model, steps, extent)  # the same divergence checks as the paper's method
         skin = surf.map.apply(s.x)
         motion = float(np.linalg.norm(skin - skin_prev, axis=1).mean())
         skin_prev = skin
@@ -183,7 +172,7 @@ def run_method(method: str, truth: Mechanism, prior: Mechanism, flexion_deg: flo
     notes = []
     model = model or build_association_model(prior)
     if points is None:
-        pts, truth_tf = _depth_points(truth, flexion_deg, cam, noise, seed, model.settings)
+        pts, truth_tf = case_points(truth, flexion_deg, cam, noise, seed, model.settings)
     else:
         pts, truth_tf = points, truth.solve(math.radians(flexion_deg))[0]
     if method != "paper":
@@ -250,6 +239,18 @@ def run_method(method: str, truth: Mechanism, prior: Mechanism, flexion_deg: flo
                         _surfaces_fem(model, s.x, T_world))
 
 
+def result_row(camera_name: str, flexion_deg: float, r: MethodResult) -> dict:
+    """One row of the comparison table from a method's result."""
+    return {"method": r.method, "camera": camera_name, "flexion_true_deg": float(flexion_deg),
+            "flexion_estimated_deg": r.flexion_estimated_deg,
+            "femur_footprints_mm": r.errors["femur"]["footprints"][0],
+            "tibia_footprints_mm": r.errors["tibia"]["footprints"][0],
+            "femur_epiphysis_mm": r.errors["femur"]["epiphysis"][0],
+            "tibia_epiphysis_mm": r.errors["tibia"]["epiphysis"][0],
+            "steps": r.steps, "wall_seconds": r.wall_seconds, "converged": r.converged,
+            "notes": "; ".join(r.notes), "failed": ""}
+
+
 def compare_cases(truth: Mechanism, prior: Mechanism, flexions_deg, cameras: dict, methods=METHODS,
                   noise=DepthNoise(), seed: int = 0, progress=None, on_result=None) -> list[dict]:
     """Every method on every (flexion, camera) case; one row per run with the errors and timings.
@@ -282,14 +283,7 @@ def compare_cases(truth: Mechanism, prior: Mechanism, flexions_deg, cameras: dic
                     continue
                 if on_result:
                     on_result(cam_name, fl, method, r, truth_tf)
-                rows.append({"method": method, "camera": cam_name, "flexion_true_deg": fl,
-                             "flexion_estimated_deg": r.flexion_estimated_deg,
-                             "femur_footprints_mm": r.errors["femur"]["footprints"][0],
-                             "tibia_footprints_mm": r.errors["tibia"]["footprints"][0],
-                             "femur_epiphysis_mm": r.errors["femur"]["epiphysis"][0],
-                             "tibia_epiphysis_mm": r.errors["tibia"]["epiphysis"][0],
-                             "steps": r.steps, "wall_seconds": r.wall_seconds, "converged": r.converged,
-                             "notes": "; ".join(r.notes), "failed": ""})
+                rows.append(result_row(cam_name, fl, r))
     if progress:
         progress(total, total, "done")
     return rows

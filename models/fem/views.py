@@ -21,6 +21,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from models.fem.mapping import TrilinearMapping
+from models.fem.scene import knee_angles
 from toolkit import recording as R
 
 
@@ -58,8 +59,8 @@ class FemRecorder:
     path : recording file (``.rrd``), written from the start
     model : the association model
     every : log the geometry every ``every`` steps (the plots get every step)
-    truth : optional dict with ``femur``/``tibia`` true target points (P, 3), ``femur_fp``/``tibia_fp``
-        footprint masks, ``targets`` the model's target points (femur, tibia) at rest, and ``meshes``
+    truth : optional dict with ``targets`` the model's :class:`~models.fem.case.TargetPoints`, ``femur`` and
+        ``tibia`` the true target points (P, 3) (:func:`models.fem.case.truth_targets`), and ``meshes``
         ``{name: trimesh}`` of the true bones, posed
     """
 
@@ -82,8 +83,8 @@ class FemRecorder:
         if truth is not None:
             for name, mesh in truth.get("meshes", {}).items():
                 R.log_mesh(rec, f"knee/truth/{name}", mesh, (120, 160, 235, 140))
-            self.tmaps = (TrilinearMapping(model.grid, truth["targets"][0]),
-                          TrilinearMapping(model.grid, truth["targets"][1]))
+            self.tmaps = (TrilinearMapping(model.grid, truth["targets"].femur),
+                          TrilinearMapping(model.grid, truth["targets"].tibia))
         self._depth_logged = False
         self.last_step = -1
 
@@ -114,15 +115,14 @@ class FemRecorder:
             else:
                 rec.log("knee/surface_forces", rr.Clear(recursive=False))
             if phase == "bone" and bone.directions:
-                pts = [bone.femur.bone_positions(x)[bone.shaft_f].mean(0), bone.femur.bone_positions(x)[bone.fossa].mean(0),
-                       bone.femur.bone_positions(x)[bone.fossa].mean(0), bone.tibia.bone_positions(x)[bone.shaft_t].mean(0)]
+                pf, pt = bone.femur.bone_positions(x), bone.tibia.bone_positions(x)
+                fossa = pf[bone.fossa].mean(0)
+                pts = [pf[bone.shaft_f].mean(0), fossa, fossa, pt[bone.shaft_t].mean(0)]
                 vec = [bone.directions[n] * 30.0 * (bone.F[i] > 0) for i, n in enumerate(("F1", "F2", "F3", "F4"))]
                 rec.log("knee/bone_forces", rr.Arrows3D(origins=np.array(pts, np.float32), vectors=np.array(vec, np.float32),
                                                         labels=["F1", "F2", "F3", "F4"], colors=[(220, 40, 40)]))
             else:
                 rec.log("knee/bone_forces", rr.Clear(recursive=False))
-        from models.fem.scene import knee_angles
-
         rec.log("metrics/knee/flexion_deg", rr.Scalars(knee_angles(model, x)[0]))
         if phase == "surface":
             rec.log("metrics/surface/reference_mm", rr.Scalars(surf.reference))
@@ -130,7 +130,7 @@ class FemRecorder:
         if self.truth is not None:
             for i, bone_name in enumerate(("femur", "tibia")):
                 d = np.linalg.norm(self.tmaps[i].apply(x) - self.truth[bone_name], axis=1)
-                fp = self.truth[f"{bone_name}_fp"]
+                fp = getattr(self.truth["targets"], f"{bone_name}_footprints")
                 rec.log(f"metrics/errors/{bone_name}_footprints", rr.Scalars(float(d[fp].mean())))
                 rec.log(f"metrics/errors/{bone_name}_epiphysis", rr.Scalars(float(d.mean())))
         if s.last_info is not None:
