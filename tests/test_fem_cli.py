@@ -46,7 +46,7 @@ def test_knee_fem_short_run_prints_errors_and_records(tmp_path):
     (["--camera", "10,20,5"], "camera distance"),
     (["--flexion", "200"], "--flexion must be 0-150"),
     (["--depth", "missing.png"], "--depth needs --intrinsics"),
-    (["--depth", "missing.png", "--intrinsics", "600,600,640"], "--intrinsics must be 4"),
+    (["--depth", "missing.png", "--intrinsics", "600,600,640"], "--intrinsics must be four"),
     (["--cloud", "missing.ply"], "no such point-cloud file"),
     (["--intrinsics", "1,2,3,4"], "go with --depth or --cloud"),
     (["--max-steps", "0"], "--max-steps must be positive"),

@@ -384,7 +384,8 @@ def _numbers(text: str, n: int, what: str, hint: str = "") -> np.ndarray:
     except ValueError:
         v = np.zeros(0)
     if v.size != n or not np.all(np.isfinite(v)):
-        raise KneeInputError(f"{what} must be {n} comma-separated numbers{hint}, got {text!r}")
+        count = {3: "three", 4: "four", 6: "six"}.get(n, str(n))
+        raise KneeInputError(f"{what} must be {count} comma-separated numbers{hint}, got {text!r}")
     return v
 
 
