@@ -100,14 +100,22 @@ class MappedSprings:
     when stretched, which keeps it positive semi-definite).
     """
 
-    def __init__(self, grid, a, b, k=1000.0, rest_length=None, maps=None):
+    def __init__(self, grid, a, b, k=1000.0, rest_length=None, maps=None, low_rank=False):
         """``maps``: ``(ma, mb)`` mappings to use instead of embedding ``a`` and ``b`` in grid cells (for
-        points attached to a bone, :func:`affine_point_map`); ``a``, ``b`` still give the rest length."""
+        points attached to a bone, :func:`affine_point_map`); ``a``, ``b`` still give the rest length.
+
+        ``low_rank``: the springs stay out of the assembled matrix (``matrix()`` is empty) and offer
+        ``low_rank_factor()`` instead, which the implicit solver adds to its factorised preconditioner by
+        the Woodbury identity: for springs whose ends couple many nodes (wide bone attachments), which
+        would otherwise fill the factorisation with a dense block."""
         a, b = np.atleast_2d(a), np.atleast_2d(b)
+        self.low_rank = bool(low_rank)
         self.ma, self.mb = maps if maps is not None else (TrilinearMapping(grid, a), TrilinearMapping(grid, b))
         self.k = float(k)
         self.L0 = np.linalg.norm(b - a, axis=1) if rest_length is None else np.atleast_1d(rest_length)
         self._K = np.zeros((len(a), 3, 3))
+        d = b - a
+        self._n = d / np.maximum(np.linalg.norm(d, axis=1), 1e-12)[:, None]
 
     def forces(self, x):
         pa, pb = self.ma.apply(x), self.mb.apply(x)
@@ -118,6 +126,7 @@ class MappedSprings:
         ratio = np.clip(1 - self.L0 / ln, 0, None)
         nn = nrm[:, :, None] * nrm[:, None, :]
         self._K = self.k * (nn + ratio[:, None, None] * (np.eye(3) - nn))
+        self._n = nrm
         return self.ma.apply_transpose(f) - self.mb.apply_transpose(f)
 
     def apply(self, p):
@@ -127,8 +136,19 @@ class MappedSprings:
 
     def matrix(self):
         D = (self.mb.J3 - self.ma.J3).tocsr()
+        if self.low_rank:
+            return sp.csr_matrix((D.shape[1], D.shape[1]))
         blocks = sp.block_diag(list(self._K), format="csr")
         return (D.T @ blocks @ D).tocsr()
+
+    def low_rank_factor(self):
+        """U (3N, S) with U U^T the springs' axial stiffness k D^T n n^T D (the transverse term of a
+        stretched spring, k (1 - L0/l), is left to the iterations); None unless ``low_rank``."""
+        if not self.low_rank:
+            return None
+        D = (self.mb.J - self.ma.J).T.toarray()  # (N, S)
+        U = (D[:, None, :] * self._n.T[None, :, :]).reshape(-1, len(self._n))  # (3N, S), directions of the last forces()
+        return np.sqrt(self.k) * U
 
 
 class MappedPenaltyContact:
@@ -215,19 +235,34 @@ class MatrixMapping:
         return self.JT @ np.asarray(f, float)
 
 
-def affine_point_map(bone: "MappedBoneElasticity", points, nearest: int = 12) -> MatrixMapping:
-    """Points (P, 3) rigidly attached to a bone: each is the minimum-norm affine combination of its
-    ``nearest`` rest bone nodes (exact for any affine, so any rigid, motion of the nodes; few nodes keep
-    the coupling sparse), composed with the bone's embedding in the grid."""
+def affine_point_map(bone: "MappedBoneElasticity", points, nearest: int = 12, reach: float | None = None) -> MatrixMapping:
+    """Points (P, 3) rigidly attached to a bone: each is the minimum-norm affine combination of rest bone
+    nodes (exact for any affine, so any rigid, motion of the nodes), composed with the bone's embedding
+    in the grid.
+
+    Which nodes: the ``nearest`` ones (few nodes keep the coupling sparse), or, with ``reach`` (mm), every
+    node within ``reach`` of the nearest one's distance. A point far from its nearest nodes (a sphere
+    centre above a concave facet) needs the wide set: an affine map of a few nearly coplanar nodes
+    extrapolates their small elastic deformation into millimetres at that distance. The wide map couples
+    many nodes; use it in springs with ``low_rank=True``."""
     X = bone.el.X
     P = np.atleast_2d(np.asarray(points, float))
-    k = min(nearest, len(X))
-    idx = np.argsort(((P[:, None, :] - X[None, :, :]) ** 2).sum(-1), axis=1)[:, :k]  # (P, k)
-    A = np.concatenate([np.swapaxes(X[idx], 1, 2), np.ones((len(P), 1, k))], axis=1)  # (P, 4, k)
-    B = np.concatenate([P, np.ones((len(P), 1))], axis=1)[:, :, None]  # (P, 4, 1)
-    w = (np.swapaxes(A, 1, 2) @ np.linalg.solve(A @ np.swapaxes(A, 1, 2), B))[:, :, 0]  # (P, k)
-    W = sp.csr_matrix((w.ravel(), (np.repeat(np.arange(len(P)), k), idx.ravel())), shape=(len(P), len(X)))
-    return MatrixMapping(W @ bone.map.J)
+    d2 = ((P[:, None, :] - X[None, :, :]) ** 2).sum(-1)  # (P, Nb)
+    if reach is None:
+        k = min(nearest, len(X))
+        idx = np.argsort(d2, axis=1)[:, :k]
+        sel = np.zeros(d2.shape, bool)
+        np.put_along_axis(sel, idx, True, axis=1)
+    else:
+        d = np.sqrt(d2)
+        sel = d <= d.min(axis=1, keepdims=True) + float(reach)
+    # w = S Xh (Xh^T S Xh)^-1 [p; 1] over the selected nodes (S: selection), per point
+    Xh = np.concatenate([X, np.ones((len(X), 1))], axis=1)  # (Nb, 4)
+    G = np.einsum("pn,ni,nj->pij", sel.astype(float), Xh, Xh)  # (P, 4, 4)
+    B = np.concatenate([P, np.ones((len(P), 1))], axis=1)
+    lam = np.linalg.solve(G, B[:, :, None])[:, :, 0]  # (P, 4)
+    w = sel * (lam @ Xh.T)  # (P, Nb)
+    return MatrixMapping(sp.csr_matrix(w) @ bone.map.J)
 
 
 class MappedTargets:

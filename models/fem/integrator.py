@@ -11,7 +11,11 @@ ordering of A + A^T: about half the fill and factorisation time of the default; 
 were tried and cost more iterations after the prior's initialisation than they saved), warped by the nodes' rotations since it was computed. The factorisation is kept
 across steps and refreshed (assembled on the fixed pattern, refactorised) by an amortised rule: when the
 iterations spent beyond the count right after the last refresh add up to more than the cost of a
-refactorisation (``refresh_cost`` iterations), or when CG stops at ``max_iterations``.
+refactorisation (``refresh_cost`` iterations); and at once, in the middle of a step, when CG has not
+converged within ``restart_iterations`` (the matrix has moved too far from the factorised one, e.g. when
+many surface springs switch at once): the solve then finishes from where it stopped with the new factors.
+Fields that offer ``low_rank_factor()`` (springs between wide bone attachments) enter the preconditioner
+by the Woodbury identity instead of the assembled matrix.
 """
 
 from __future__ import annotations
@@ -46,7 +50,8 @@ class ImplicitEuler:
     """
 
     def __init__(self, x0, mass, fields, dt=0.05, rayleigh_mass=0.1, rayleigh_stiffness=0.1,
-                 tol=1e-5, max_iterations=200, refresh_cost=60, fixed=None, node_rotations=None):
+                 tol=1e-5, max_iterations=200, refresh_cost=60, fixed=None, node_rotations=None,
+                 restart_iterations=40):
         self.x = np.array(x0, dtype=float)
         self.fixed = np.zeros(len(self.x), bool) if fixed is None else np.asarray(fixed, bool)
         self._free = np.repeat(~self.fixed, 3).astype(float)
@@ -56,7 +61,9 @@ class ImplicitEuler:
         self.dt = float(dt)
         self.a, self.b = float(rayleigh_mass), float(rayleigh_stiffness)
         self.tol, self.max_iterations, self.refresh_cost = tol, max_iterations, refresh_cost
+        self.restart_iterations = restart_iterations
         self._lu = None
+        self._woodbury = None
         self._best_iterations = None  # CG iterations of the first step after the last refresh
         self._excess = 0.0            # iterations spent beyond that since the last refresh
         # node_rotations() -> (N, 3, 3) rotations of the material around each node (for the warped
@@ -103,18 +110,35 @@ class ImplicitEuler:
         A = (P @ A @ P + sp.diags(1 - self._free)).tocsc()
         self._lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                              options={"SymmetricMode": True})
+        # low-rank fields (springs between wide bone attachments) by the Woodbury identity:
+        # (A + c U U^T)^-1 = A^-1 - Z (I/c + U^T Z)^-1 Z^T, Z = A^-1 U
+        Us = [u for u in (getattr(f, "low_rank_factor", lambda: None)() for f in self.fields) if u is not None]
+        if Us:
+            U = np.hstack(Us) * self._free[:, None]
+            Z = self._lu.solve(np.asfortranarray(U))
+            self._woodbury = (Z, np.linalg.inv(np.eye(U.shape[1]) / self._ck + U.T @ Z))
+        else:
+            self._woodbury = None
         self._R_ref = None if self.node_rotations is None else self.node_rotations()
         self._best_iterations, self._excess = None, 0.0
         self.refreshes += 1
 
+    def _solve_ref(self, r):
+        """The refresh-time matrix's inverse applied to r (LU, plus the low-rank fields' correction)."""
+        z = self._lu.solve(r)
+        if self._woodbury is not None:
+            Z, Minv = self._woodbury
+            z -= Z @ (Minv @ (Z.T @ r))
+        return z
+
     def _preconditioner(self, n):
         if self.node_rotations is None:
-            return spla.LinearOperator((n, n), matvec=self._lu.solve, dtype=float)
+            return spla.LinearOperator((n, n), matvec=self._solve_ref, dtype=float)
         W = self.node_rotations() @ np.swapaxes(self._R_ref, 1, 2)  # (N, 3, 3)
         Wt = np.swapaxes(W, 1, 2)
 
         def apply(r):
-            z = self._lu.solve((Wt @ r.reshape(-1, 3, 1)).ravel())
+            z = self._solve_ref((Wt @ r.reshape(-1, 3, 1)).ravel())
             return (W @ z.reshape(-1, 3, 1)).ravel()
 
         return spla.LinearOperator((n, n), matvec=apply, dtype=float)
@@ -154,13 +178,20 @@ class ImplicitEuler:
             its[0] += 1
 
         M = self._preconditioner(n)
-        v, _ = spla.cg(A, rhs, x0=self.v.ravel(), M=M, rtol=self.tol, maxiter=self.max_iterations,
-                       callback=count)
-        if not refreshed:
+        cap = self.max_iterations if refreshed else min(self.max_iterations, self.restart_iterations)
+        v, info = spla.cg(A, rhs, x0=self.v.ravel(), M=M, rtol=self.tol, maxiter=cap, callback=count)
+        if info > 0 and not refreshed:
+            # the kept factorisation no longer fits this step's matrix: refactorise now, at this step's
+            # linearisation, and finish the solve from where CG stopped
+            self._refresh()
+            refreshed = True
+            v, _ = spla.cg(A, rhs, x0=v, M=self._preconditioner(n), rtol=self.tol, maxiter=self.max_iterations,
+                           callback=count)
+        elif not refreshed:
             if self._best_iterations is None:
                 self._best_iterations = its[0]
             self._excess += max(0, its[0] - self._best_iterations)
-            if self._excess > self.refresh_cost or its[0] >= self.max_iterations:
+            if self._excess > self.refresh_cost:
                 self._refresh()
                 refreshed = True
         elif self._best_iterations is None:
