@@ -3,7 +3,7 @@
 Flexion from depth: the knee's skin, posed by the (fitted) mechanism at a candidate flexion, is
 registered to the one-sided point cloud by ICP; the candidate whose registered skin lies closest to the
 points wins. A coarse scan over the assembly range (10 deg) is refined by a golden-section search to
-0.25 deg. The fit quality reported: the points' RMS distance to the registered skin, the inlier fraction
+0.5 deg. The fit quality reported: the points' RMS distance to the registered skin, the inlier fraction
 and the flatness of the score around the optimum.
 
 Kinematics alone (method iv of the comparison): the bones posed by the mechanism at the estimated angle,
@@ -42,6 +42,8 @@ def voxel_downsample(points, voxel: float) -> np.ndarray:
     return out / counts[:, None]
 
 
+#: ICP iterations per candidate of the coarse scan (it only ranks the candidates; the refinement uses 30).
+COARSE_ICP_ITERATIONS = 15
 #: Fewest points, and fewest below the knee (shank), to attempt an estimate.
 MIN_POINTS = 500
 MIN_SHANK_POINTS = 150
@@ -82,28 +84,30 @@ class SkinModel:
             self._cache[key] = (skin, SurfaceQuery.of(skin))
         return self._cache[key]
 
-    def samples(self, alpha: float, n: int = 6000) -> np.ndarray:
-        """Points spread over the posed skin (seeded: the same every call)."""
+    def samples(self, alpha: float, n: int = 6000) -> tuple[np.ndarray, np.ndarray]:
+        """Points spread over the posed skin (area-weighted, seeded: the same every call) and their faces'
+        normals."""
         skin, _ = self.at(alpha)
         key = ("s", round(float(alpha), 6))
         if key not in self._cache:
-            from trimesh.sample import sample_surface_even
+            from trimesh.sample import sample_surface
 
-            self._cache[key] = sample_surface_even(skin, n, seed=0)[0]
+            pts, face = sample_surface(skin, n, seed=0)
+            self._cache[key] = (pts, skin.face_normals[face])
         return self._cache[key]
 
 
-def _score(skin_model: SkinModel, alpha, points, init):
+def _score(skin_model: SkinModel, alpha, points, init, iterations: int = 30):
     skin, q = skin_model.at(alpha)
-    samples = skin_model.samples(alpha)
-    T, fitness, _ = icp(points, samples, init=init, max_distance=15.0, iterations=30)
+    samples, normals = skin_model.samples(alpha)
+    T, fitness, _ = icp(points, samples, init=init, max_distance=15.0, iterations=iterations, target_normals=normals)
     d = np.abs(q.signed_distance(transform_points(T, points)))
     trimmed = np.sort(d)[: int(0.9 * d.size)]  # robust to outliers and unseen parts
     return float(np.sqrt(np.mean(trimmed ** 2))), T, float(np.mean(d < 5.0))
 
 
 def estimate_flexion(mech: Mechanism, phantom: Phantom, points, T_init=None, coarse_step_deg: float = 10.0,
-                     tol_deg: float = 0.25, skin_length: float | None = None) -> FlexionEstimate:
+                     tol_deg: float = 0.5, skin_length: float | None = None) -> FlexionEstimate:
     """Estimate the flexion and the rigid pose of the knee from a point cloud (P, 3), world frame.
 
     ``T_init``: a first guess of the world -> model transform (default identity: the world is roughly the
@@ -131,7 +135,7 @@ def estimate_flexion(mech: Mechanism, phantom: Phantom, points, T_init=None, coa
     scores = {}
     best = (np.inf, None, None, 0.0)
     for a in grid:  # a coarse scan: a handful of ICPs (each vectorised inside open3d)
-        s, T, inl = _score(sk, a, pts, init)
+        s, T, inl = _score(sk, a, pts, init, iterations=COARSE_ICP_ITERATIONS)
         scores[round(math.degrees(a), 3)] = s
         if s < best[0]:
             best = (s, a, T, inl)

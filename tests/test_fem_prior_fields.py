@@ -96,3 +96,42 @@ def test_flexion_not_estimable_falls_back_to_the_papers_method(volunteer, monkey
     assert any("fallback: the paper's method" in n and "shank" in n for n in r.notes)
     with pytest.raises(KneeInputError, match="shank"):
         pc.run_method("kinematics", volunteer, volunteer, 60.0, points=thigh_only)
+
+
+def test_wide_attachment_is_exact_for_affine_motion_and_damps_local_deformation(model, volunteer):
+    """A link end far from its bone (the medial contact's sphere centre above the facet) attached to every
+    node within reach follows any affine motion exactly, and a local deformation of the nearest nodes
+    moves it far less than it moves the 12-nearest-node attachment (which extrapolates it)."""
+    from toolkit.conventions import joint_to_pose, transform_points
+
+    T0 = joint_to_pose(volunteer.solve(0.0)[0])
+    p = transform_points(T0, np.array([volunteer.params.link("mc").tibia]))
+    wide = affine_point_map(model.tibia, p, reach=60.0)
+    near = affine_point_map(model.tibia, p)
+    assert wide.J.nnz > near.J.nnz
+    A = np.array([[1.02, 0.01, 0.0], [0.0, 0.98, 0.03], [0.01, 0.0, 1.01]])
+    x = model.grid.X @ A.T + [1.0, 2.0, -3.0]
+    np.testing.assert_allclose(wide.apply(x), p @ A.T + [1.0, 2.0, -3.0], atol=1e-7)
+    np.testing.assert_allclose(near.apply(x), p @ A.T + [1.0, 2.0, -3.0], atol=1e-7)
+    # bump the grid nodes carrying the tibia's 12 nodes nearest p by 0.1 mm along the bone's long axis
+    Xb = model.tibia.el.X
+    idx = np.argsort(np.linalg.norm(Xb - p, axis=1))[:12]
+    cols = np.unique(model.tibia.map.J[idx].indices)
+    x = model.grid.X.copy()
+    x[cols, 1] += 0.1 * np.sign(np.arange(len(cols)) % 2 - 0.5)
+    move_wide = np.linalg.norm(wide.apply(x) - p)
+    move_near = np.linalg.norm(near.apply(x) - p)
+    assert move_wide < 0.5 * move_near, (move_wide, move_near)
+
+
+def test_prior_floor_vanishes_for_an_exact_prior_and_not_for_a_perturbed_one(model, volunteer):
+    from fitting.optimize import perturb_endpoints
+    from models.fem.prior_case import prior_floor
+    from models.mechanism import Mechanism
+
+    exact = prior_floor(model, volunteer, volunteer, [45.0, 90.0], step_deg=0.5)
+    for r in exact:  # the truth's own pose lies on its path (within the half-step of the scan)
+        assert r["tibia_footprints_mm"] < 0.5 and abs(r["prior_flexion_deg"] - r["flexion_deg"]) <= 0.5
+    wrong = Mechanism(perturb_endpoints(volunteer.params, 1.0, 2.0, seed=3))
+    off = prior_floor(model, volunteer, wrong, [45.0, 90.0], step_deg=0.5)
+    assert all(r["tibia_footprints_mm"] > 1.0 for r in off)

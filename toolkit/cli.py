@@ -535,9 +535,10 @@ def _camera_list(text: str) -> list[str]:
 def cmd_compare(args) -> int:
     from fitting.optimize import perturb_endpoints
     from models.fem.case import camera_from_spec, truth_phantom
-    from models.fem.compare_report import CompareRecorder, markdown, plot, summary, targets_check, write_csv
+    from models.fem.compare_report import CompareRecorder, floor_markdown, markdown, plot, summary, targets_check, write_csv
     from models.fem.depth import DepthNoise
-    from models.fem.prior_case import METHODS, compare_cases
+    from models.fem.prior_case import METHODS, compare_cases, prior_floor
+    from models.fem.scene import build_association_model
     from models.mechanism import Mechanism
     from models.mechanism.params import load_model
 
@@ -572,7 +573,8 @@ def cmd_compare(args) -> int:
         recorder.finish()
     write_csv(rows, out / "compare.csv")
     title = f"Kinematic priors for the FEM: {origin}"
-    (out / "compare.md").write_text(markdown(rows, methods, title), encoding="utf-8")
+    floor = prior_floor(build_association_model(prior), truth, prior, flexions)
+    (out / "compare.md").write_text(markdown(rows, methods, title) + floor_markdown(floor), encoding="utf-8")
     plot(rows, methods, out / "compare.png", title)
     summ = summary(rows, methods)
     print("method      cases  failed  footprints (mm)  epiphysis (mm)  |flexion error| (deg)  wall (s)")
@@ -581,6 +583,8 @@ def cmd_compare(args) -> int:
               f"{v['flexion_error_deg']:20.2f}  {v['wall_s']:8.1f}")
     for line in targets_check(summ):
         print(line)
+    print("the prior's own tibia error (best-matching flexion, femur placed exactly), footprints mm: " +
+          ", ".join(f"{r['flexion_deg']:g} deg {r['tibia_footprints_mm']:.2f}" for r in floor))
     notes = sorted({r["notes"] for r in rows if r.get("notes")} | {f"failed: {r['failed']}" for r in rows if r.get("failed")})
     for n in notes:
         print(f"note: {n}")

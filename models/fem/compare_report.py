@@ -71,6 +71,16 @@ def write_csv(rows: list[dict], path) -> None:
             w.writerow({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in r.items()})
 
 
+def floor_markdown(floor: list[dict]) -> str:
+    """A Markdown section from :func:`models.fem.prior_case.prior_floor`'s rows."""
+    lines = ["", "", "What the prior's links allow at best: the prior posed at its best-matching flexion with the femur "
+             "placed exactly (tibia target point errors, mm).", "",
+             "| flexion | prior's flexion | tibia footprints | tibia epiphysis |", "|---:|---:|---:|---:|"]
+    lines += [f"| {r['flexion_deg']:g} | {r['prior_flexion_deg']:.1f} | {r['tibia_footprints_mm']:.2f} | "
+              f"{r['tibia_epiphysis_mm']:.2f} |" for r in floor]
+    return "\n".join(lines) + "\n"
+
+
 def markdown(rows: list[dict], methods, title: str) -> str:
     summ = summary(rows, methods)
     lines = [f"# {title}", "",

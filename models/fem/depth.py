@@ -149,8 +149,11 @@ def load_point_cloud(path) -> np.ndarray:
     return pts
 
 
-def icp(source_points, target_points, init=None, max_distance: float = 20.0, iterations: int = 60):
+def icp(source_points, target_points, init=None, max_distance: float = 20.0, iterations: int = 60,
+        target_normals=None):
     """Rigid registration of ``source_points`` onto ``target_points`` (point-to-plane ICP, open3d).
+    ``target_normals`` (P, 3): the target's normals when known (e.g. the faces' normals of points sampled
+    on a mesh); estimated from the points otherwise.
 
     Returns
     -------
@@ -159,7 +162,10 @@ def icp(source_points, target_points, init=None, max_distance: float = 20.0, ite
     """
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(source_points, float)))
     dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(target_points, float)))
-    dst.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=8.0, max_nn=30))
+    if target_normals is None:
+        dst.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=8.0, max_nn=30))
+    else:
+        dst.normals = o3d.utility.Vector3dVector(np.asarray(target_normals, float))
     reg = o3d.pipelines.registration.registration_icp(
         src, dst, max_distance, np.eye(4) if init is None else np.asarray(init, float),
         o3d.pipelines.registration.TransformationEstimationPointToPlane(),

@@ -6,17 +6,23 @@ Methods compared on the same case (truth from one parameter set, the prior from 
   surface forces, two collateral springs;
 * ``"init"`` (ii): the prior as initialisation only: the flexion is estimated from the point cloud
   (:func:`models.prior.estimate_flexion`), femur and tibia are moved along the mechanism's path to that
-  angle with the grid nodes of their cells prescribed (Dirichlet conditions in the implicit solver: the
-  soft tissue inside a bone's cells moves with the bone), then released, and the surface phase runs with
-  the paper's two springs;
+  angle with the grid nodes of their cells prescribed (Dirichlet conditions: the soft tissue inside a
+  bone's cells moves with the bone; the rest of the grid in static equilibrium at each of 4 increments),
+  then released, and the surface phase runs with the paper's two springs;
 * ``"links"`` (iii): as (ii), and during the surface phase the mechanism's five links act between points
-  rigidly attached to the femur and tibia (minimum-norm affine combinations of each bone's nodes) as stiff
-  springs (1000 N/mm, the paper's collateral stiffness). Springs rather than exact constraints: the
-  implicit solver's matrix-free CG takes them without changing its unknowns, and 1000 N/mm keeps each
-  link within a few micrometres per newton;
+  rigidly attached to the femur and tibia as stiff springs (1000 N/mm, the paper's collateral
+  stiffness). Each link end is the minimum-norm affine combination of every bone node within 60 mm of
+  its nearest node (a wide, non-coplanar set: the medial contact's tibial end, a sphere centre 58 mm
+  above the facet, extrapolated the bone's small elastic deformation into millimetres when attached to
+  its 12 nearest nodes). Springs rather than exact constraints: the implicit solver's matrix-free CG
+  takes them without changing its unknowns, their wide coupling enters its factorised preconditioner
+  as a rank-5 (Woodbury) term instead of a dense block, and 1000 N/mm keeps each link within a few
+  micrometres per newton;
 * ``"kinematics"`` (iv): the mechanism alone at the estimated angle, no FEM.
 
 All four are evaluated with the same target points (ACL/PCL footprints and epiphysis, per bone).
+Methods (ii) and (iii) look for an equilibrium, not a motion: their phases take quasi-static steps
+(:class:`quasi_static`).
 """
 
 from __future__ import annotations
@@ -268,6 +274,35 @@ def _fem_phases(method, model, prior, est, pts_model, T_world, truth_tf, flexion
     errors = _evaluate(model, prior, truth_tf, x=s.x, T_world=T_world)
     return MethodResult(method, flexion_deg, flex, errors, steps, time.perf_counter() - t0, converged, notes,
                         _surfaces_fem(model, s.x, T_world))
+
+
+def prior_floor(model: AssociationModel, truth: Mechanism, prior: Mechanism, flexions_deg,
+                step_deg: float = 0.25) -> list[dict]:
+    """What the prior's links allow at best: for each true flexion, the tibia's target point errors of the
+    prior posed at its best-matching flexion (footprints), with the femur placed exactly. A method that
+    holds the bones to the prior's links (iii) cannot do better on the tibia than this unless the depth
+    points move the tibia off the prior's path. Rows: flexion, best prior flexion, tibia footprints and
+    epiphysis (mm)."""
+    from models.fem.case import target_points
+
+    tg = target_points(model, prior)
+    T0 = joint_to_pose(prior.solve(0.0)[0])
+    local = transform_points(invert_poses(T0), tg.tibia)
+    lo, hi = prior.assembly_range
+    alphas = np.arange(max(lo, 0.0), hi, math.radians(step_deg))  # from extension: the path's branch
+    Tp = joint_to_pose(prior.motion_at(alphas)[0])  # (A, 4, 4)
+    est = np.einsum("aij,pj->api", Tp[:, :3, :3], local) + Tp[:, None, :3, 3]  # (A, P, 3)
+    rows = []
+    for fl in flexions_deg:
+        if not truth.in_range(math.radians(fl)):
+            continue
+        true = transform_points(joint_to_pose(truth.solve(math.radians(fl))[0]), local)
+        d = np.linalg.norm(est - true[None], axis=2)  # (A, P)
+        fp = d[:, tg.tibia_footprints].mean(axis=1)
+        i = int(fp.argmin())
+        rows.append({"flexion_deg": float(fl), "prior_flexion_deg": math.degrees(alphas[i]),
+                     "tibia_footprints_mm": float(fp[i]), "tibia_epiphysis_mm": float(d[i].mean())})
+    return rows
 
 
 def result_row(camera_name: str, flexion_deg: float, r: MethodResult) -> dict:
