@@ -114,6 +114,17 @@ def test_descending_and_coarse_sweeps_stay_on_the_branch(volunteer):
     np.testing.assert_allclose(down.pf[::-1], fine.pf[::10], atol=1e-9)
 
 
+def test_sweeps_from_an_end_of_the_range_stay_on_the_branch(volunteer):
+    """Both branches meet at the ends of the assembly range; a sweep that starts exactly there used to
+    continue onto the other branch (up to 2 mm off at 45 deg). Every row must equal the single solve."""
+    lo, hi = volunteer.assembly_range
+    for first in (lo, hi):
+        res = volunteer.sweep(np.array([first, DEG(45.0), DEG(60.0)]))
+        assert res.complete
+        for k, a in enumerate(res.flexion):
+            np.testing.assert_allclose(res.tf[k], volunteer.solve(a)[0], atol=1e-8)
+
+
 def test_single_solve_equals_sweep(volunteer):
     res = volunteer.sweep(DEG([17.0, 63.5, 101.0]))
     for k, a in enumerate(res.flexion):

@@ -76,6 +76,9 @@ def detect_jumps(x0, a0, x, alpha) -> np.ndarray:
 
 #: Largest step (rad) the continuation takes between two angles; larger requested steps are subdivided.
 MAX_STEP = math.radians(2.0)
+#: A sweep whose first angle lies within _FOLD_TOL of an end of the assembly range starts _FOLD_STEP inside.
+_FOLD_TOL = math.radians(0.25)
+_FOLD_STEP = math.radians(0.5)
 
 
 def _subdivide(al, max_step):
@@ -488,6 +491,16 @@ class Mechanism:
         pf = d[31:37].copy() if self.has_pf else np.full(6, np.nan)
         return tf, pf, res
 
+    def _sweep_rows(self, req, path, keep) -> SweepResult:
+        """Sweep ``path`` and return the rows ``keep`` of it, as the result for the requested ``req``."""
+        full = self.sweep(path)
+        solved = int(np.searchsorted(keep, full.flexion.size))  # requested rows before any stop
+        rows = keep[:solved]
+        return SweepResult(requested=req, flexion=full.flexion[rows], tf=full.tf[rows], pf=full.pf[rows],
+                           residual=full.residual[rows], jacobian=full.jacobian[rows], psi=full.psi[rows],
+                           status=full.status, message=full.message, limit=full.limit,
+                           _states=None if full._states is None else full._states[rows])
+
     def sweep(self, flexion) -> SweepResult:
         """Solve over a sequence of flexion angles (rad) by continuation along the chosen branch.
 
@@ -498,7 +511,8 @@ class Mechanism:
 
         Steps larger than :data:`MAX_STEP` between consecutive angles are subdivided internally (only
         the requested angles are returned): a large step could otherwise converge onto another branch
-        without any sign in the residual.
+        without any sign in the residual. A sweep that begins at an end of the assembly range (where the
+        branches meet) starts half a degree inside and walks out to it, for the same reason.
 
         Parameters
         ----------
@@ -506,16 +520,17 @@ class Mechanism:
             Angles in rad, in the order to visit.
         """
         req = np.asarray(flexion, dtype=float).ravel()
+        if req.size > 1 and np.all(np.isfinite(req)):
+            lo, hi = self.assembly_range
+            if min(abs(req[0] - lo), abs(req[0] - hi)) < _FOLD_TOL:
+                # at an end of the range both assembly branches meet (a fold): continuing from there can
+                # leave the chosen branch, so the sweep starts half a degree inside and walks out to it
+                inner = lo + _FOLD_STEP if abs(req[0] - lo) < abs(req[0] - hi) else hi - _FOLD_STEP
+                return self._sweep_rows(req, np.r_[inner, req], np.arange(1, req.size + 1))
         if req.size and np.all(np.isfinite(req)):
             path, keep = _subdivide(req, MAX_STEP)
             if path.size != req.size:
-                full = self.sweep(path)
-                solved = int(np.searchsorted(keep, full.flexion.size))  # requested rows before any stop
-                rows = keep[:solved]
-                return SweepResult(requested=req, flexion=full.flexion[rows], tf=full.tf[rows], pf=full.pf[rows],
-                                   residual=full.residual[rows], jacobian=full.jacobian[rows], psi=full.psi[rows],
-                                   status=full.status, message=full.message, limit=full.limit,
-                                   _states=None if full._states is None else full._states[rows])
+                return self._sweep_rows(req, path, keep)
         al = req
         if al.size == 0:
             raise KneeInputError("sweep needs at least one flexion angle")
