@@ -141,6 +141,20 @@ def cmd_demo(args) -> int:
         out_dir = base.with_name(f"{base.name}-{k}")
         k += 1
     out_dir.mkdir(parents=True)
+    fem = None
+    if not args.kinematics_only:
+        # the FEM comparison (two worker processes) starts first and runs while the sweep is solved and
+        # recorded: the workers' start-up overlaps it
+        from concurrent.futures import ThreadPoolExecutor
+
+        from models.demo import run_demo_comparison
+
+        print(f"knee demo: virtual depth map at {args.flexion:g} deg; the association FEM with the kinematic prior "
+              f"and with the paper's forcing, two processes (started) ...", file=sys.stderr, flush=True)
+        runner = ThreadPoolExecutor(max_workers=1)
+        fem = runner.submit(run_demo_comparison, out_dir, args.flexion,
+                            log=lambda t: print(t, file=sys.stderr, flush=True))
+        runner.shutdown(wait=False)
     from models.mechanism import Mechanism
 
     mech = Mechanism.from_name("volunteer")
@@ -160,15 +174,14 @@ def cmd_demo(args) -> int:
     print(f"recording:    {rrd_path}")
     print(f"open it with: rerun {rrd_path}")
     if not res.complete:
+        if fem is not None and not fem.cancel():
+            fem.exception()  # the comparison already runs: let it finish (its files) before reporting
         return _err(res.message)
-    if args.kinematics_only:
+    if fem is None:
         return 0
-    from models.demo import run_demo_comparison
     from models.fem.compare_report import METHOD_LABELS
 
-    print(f"knee demo: virtual depth map at {args.flexion:g} deg; the association FEM with the kinematic prior "
-          f"and with the paper's forcing, two processes ...", file=sys.stderr, flush=True)
-    out = run_demo_comparison(out_dir, args.flexion, log=lambda t: print(t, file=sys.stderr, flush=True))
+    out = fem.result()
     print(f"\nFEM at {args.flexion:g} deg flexion (truth: volunteer; prior: volunteer with TF endpoints moved 1-2 mm; "
           f"oblique camera, depth noise):")
     print(f"{'method':44s} {'flexion':>8s} {'footprints':>11s} {'epiphysis':>10s} {'steps':>6s} {'wall (s)':>9s}")
