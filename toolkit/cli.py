@@ -606,6 +606,13 @@ def cmd_compare(args) -> int:
     return 0
 
 
+def _gait_options(p) -> None:
+    """The gait trial and the subject's anthropometry (knee gait, knee osteotomy)."""
+    p.add_argument("--trial", help="gait CSV (README, 'Gait'); default: the bundled normative cycle")
+    p.add_argument("--mass", type=float, default=72.0, help="body mass, kg (72)")
+    p.add_argument("--height", type=float, default=1.75, help="body height, m (1.75)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="knee", description="Knee kinematics toolkit (mm, degrees at the CLI).")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -642,9 +649,7 @@ def build_parser() -> argparse.ArgumentParser:
     fp.set_defaults(func=cmd_fit)
     gp = sub.add_parser("gait", help="inverse dynamics, link forces and contact pressures over a gait cycle")
     gp.add_argument("model", help="a bundled parameter set with a patella, or a TOML file")
-    gp.add_argument("--trial", help="gait CSV (README, 'Gait'); default: the bundled normative cycle")
-    gp.add_argument("--mass", type=float, default=72.0, help="body mass, kg (72)")
-    gp.add_argument("--height", type=float, default=1.75, help="body height, m (1.75)")
+    _gait_options(gp)
     gp.add_argument("--out", default="knee-gait", help="output folder (knee-gait)")
     gp.add_argument("--rrd", help="recording path (default OUT/gait.rrd)")
     gp.add_argument("--force", action="store_true", help="write into a non-empty output folder")
@@ -664,9 +669,7 @@ def build_parser() -> argparse.ArgumentParser:
     op.add_argument("--hinge", help="hinge: point and axis, hx,hy,hz,ax,ay,az (mm); default: 8 mm inside the "
                                     "lateral cortex, along x")
     op.add_argument("--release", action="append", help="release a ligament whose insertion moves (repeatable)")
-    op.add_argument("--trial", help="gait CSV (default: the bundled normative cycle)")
-    op.add_argument("--mass", type=float, default=72.0)
-    op.add_argument("--height", type=float, default=1.75)
+    _gait_options(op)
     op.add_argument("--out", default="knee-osteotomy", help="output folder (knee-osteotomy)")
     op.add_argument("--force", action="store_true")
     op.set_defaults(func=cmd_osteotomy)

@@ -135,9 +135,10 @@ class MappedSprings:
         return self.mb.apply_transpose(g) - self.ma.apply_transpose(g)
 
     def matrix(self):
+        if self.low_rank:  # in the preconditioner through low_rank_factor() instead
+            n3 = 3 * self.ma.J.shape[1]
+            return sp.csr_matrix((n3, n3))
         D = (self.mb.J3 - self.ma.J3).tocsr()
-        if self.low_rank:
-            return sp.csr_matrix((D.shape[1], D.shape[1]))
         blocks = sp.block_diag(list(self._K), format="csr")
         return (D.T @ blocks @ D).tocsr()
 

@@ -291,7 +291,7 @@ def prior_floor(model: AssociationModel, truth: Mechanism, prior: Mechanism, fle
     T0 = joint_to_pose(prior.solve(0.0)[0])
     local = transform_points(invert_poses(T0), tg.tibia)
     lo, hi = prior.assembly_range
-    alphas = np.arange(max(lo, 0.0), hi, math.radians(step_deg))  # from extension: the path's branch
+    alphas = np.arange(lo, hi, math.radians(step_deg))
     Tp = joint_to_pose(prior.motion_at(alphas)[0])  # (A, 4, 4)
     est = np.einsum("aij,pj->api", Tp[:, :3, :3], local) + Tp[:, None, :3, 3]  # (A, P, 3)
     rows = []
