@@ -53,19 +53,36 @@ class Phantom:
 
         A thigh capsule along the femoral shaft, a shank capsule along the tibial shaft (posed) and a
         sphere at the knee, joined; the radius clears every bone by at least 8 mm at extension. The
-        capsules run ``length`` mm from the knee (default: 10 mm beyond the bone shafts).
+        capsules run ``length`` mm from the knee (default: 10 mm beyond the bone shafts). The union of
+        :meth:`skin_parts`.
         """
-        r = self.skin_radius
+        return _union([m.copy().apply_transform(T) for m, T in self.skin_parts(tf_pose, pf_pose, length)])
+
+    def skin_parts(self, tf_pose: np.ndarray, pf_pose: np.ndarray | None = None,
+                   length: float | None = None) -> list[tuple[trimesh.Trimesh, np.ndarray]]:
+        """The envelope's solid parts before their union: (mesh in the part's own frame, pose (4, 4) that
+        places it in the femur frame). The meshes do not depend on the pose (built once per length), so a
+        posed envelope can be queried part by part without building the union (:class:`models.prior.SkinModel`)."""
         L = self.shaft_length + 10.0 if length is None else float(length)
-        thigh = _capsule(np.array([0.0, 10.0, 0.0]), np.array([0.0, L, 0.0]), r)
-        shank = _capsule(np.array([0.0, -10.0, 0.0]), np.array([0.0, -L, 0.0]), r * 0.92)
-        shank.apply_transform(tf_pose)
-        knee_c = 0.5 * (np.zeros(3) + tf_pose[:3, 3])
-        parts = [thigh, shank, trimesh.creation.icosphere(3, r * 1.02).apply_translation(knee_c)]
+        thigh, shank, knee, patella = self._skin_meshes(L)
+        tf_pose = np.asarray(tf_pose, float)
+        knee_T = np.eye(4)
+        knee_T[:3, 3] = 0.5 * tf_pose[:3, 3]
+        parts = [(thigh, np.eye(4)), (shank, tf_pose), (knee, knee_T)]
         if pf_pose is not None and self.patella is not None:
-            pc = pf_pose[:3, :3] @ self.patella.centroid + pf_pose[:3, 3]
-            parts.append(trimesh.creation.icosphere(3, 24.0).apply_translation(pc))
-        return _union(parts)
+            pat_T = np.eye(4)
+            pat_T[:3, 3] = pf_pose[:3, :3] @ self.patella.centroid + pf_pose[:3, 3]
+            parts.append((patella, pat_T))
+        return parts
+
+    def _skin_meshes(self, L: float):
+        cache = self.__dict__.setdefault("_skin_mesh_cache", {})
+        if L not in cache:
+            r = self.skin_radius
+            cache[L] = (_capsule(np.array([0.0, 10.0, 0.0]), np.array([0.0, L, 0.0]), r),
+                        _capsule(np.array([0.0, -10.0, 0.0]), np.array([0.0, -L, 0.0]), r * 0.92),
+                        trimesh.creation.icosphere(3, r * 1.02), trimesh.creation.icosphere(3, 24.0))
+        return cache[L]
 
 
 def _union(meshes) -> trimesh.Trimesh:

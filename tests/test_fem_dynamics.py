@@ -139,18 +139,24 @@ def test_low_rank_springs_enter_the_preconditioner_exactly():
 def test_cg_refactorises_mid_step_when_the_kept_factors_no_longer_fit():
     """A step whose matrix moved far from the factorised one (a large new load after a refresh) stops CG
     at ``restart_iterations``, refactorises and still solves to the tolerance, against the same step with
-    a fresh factorisation."""
+    a fresh factorisation; with ``predict_refresh`` it refactorises as soon as the convergence rate so far
+    predicts that finishing costs more than a refactorisation (the costs fixed here), with the same result."""
     g = _box_grid((8, 2, 2), (80.0, 10.0, 10.0))
     clamped = g.X[:, 0] < 1e-9
     tip = g.X[:, 0] > 80 - 1e-9
     load = np.zeros(g.X.shape)
     load[tip, 1] = -40.0
 
-    def run(restart):
+    def run(restart, predict=False, costs=None):
         s = ImplicitEuler(g.X, np.full(len(g.X), 1e-6), [GridElasticity(g, E=1.0, nu=0.3)], dt=0.05,
-                          fixed=clamped, restart_iterations=restart, refresh_cost=10 ** 9)
+                          fixed=clamped, restart_iterations=restart, refresh_cost=10 ** 9, predict_refresh=predict)
+        if costs is not None:  # fixed costs (seconds per iteration, per refactorisation) instead of measured
+            s._time_iterations = lambda seconds, n: None
+            s._t_iteration = costs[0]
         its = []
         for _ in range(4):  # factorised at rest; large rotations follow: the rest factors fit badly
+            if costs is not None:
+                s._t_factor = costs[1]
             s.step(lambda x: load)
             its.append(s.last_info.iterations)
             assert s.last_info.residual < 1e-4
@@ -159,4 +165,12 @@ def test_cg_refactorises_mid_step_when_the_kept_factors_no_longer_fit():
     (capped, _), (free, its) = run(2), run(10 ** 6)
     assert free.refreshes == 1 and max(its) > 2
     assert capped.refreshes > 1
+    # the predicted cost of finishing with the stale factors (iterations still needed at the rate so
+    # far, 1 s each) exceeds a refactorisation (2 s): it refactorises before any cap
+    predicted, its_p = run(10 ** 6, predict=True, costs=(1.0, 2.0))
+    assert predicted.refreshes > 1 and sum(its_p) < sum(its)
+    np.testing.assert_allclose(predicted.x, free.x, atol=1e-4 * np.abs(free.x - g.X).max())
+    # a refactorisation dearer than any remaining solve: never predicted to pay
+    never, _ = run(10 ** 6, predict=True, costs=(1e-9, 1e9))
+    assert never.refreshes == 1
     np.testing.assert_allclose(capped.x, free.x, atol=1e-4 * np.abs(free.x - g.X).max())

@@ -132,6 +132,20 @@ def test_prior_floor_vanishes_for_an_exact_prior_and_not_for_a_perturbed_one(mod
     exact = prior_floor(model, volunteer, volunteer, [45.0, 90.0], step_deg=0.5)
     for r in exact:  # the truth's own pose lies on its path (within the half-step of the scan)
         assert r["tibia_footprints_mm"] < 0.5 and abs(r["prior_flexion_deg"] - r["flexion_deg"]) <= 0.5
+        assert abs(r["axial_rotation_deg"]) < 0.5 and r["tibia_footprints_axial_mm"] < 0.3
     wrong = Mechanism(perturb_endpoints(volunteer.params, 1.0, 2.0, seed=3))
     off = prior_floor(model, volunteer, wrong, [45.0, 90.0], step_deg=0.5)
     assert all(r["tibia_footprints_mm"] > 1.0 for r in off)
+    # the axial part is a part: no more than the whole, and the twist it reports reproduces its error on
+    # the footprints, rotated independently about the tibia's y axis
+    from scipy.spatial.transform import Rotation
+
+    from models.fem.case import target_points
+    from toolkit.conventions import invert_poses, joint_to_pose, transform_points
+
+    tg = target_points(model, wrong)
+    fp = transform_points(invert_poses(joint_to_pose(wrong.solve(0.0)[0])), tg.tibia)[tg.tibia_footprints]
+    for r in off:
+        assert 0.0 < r["tibia_footprints_axial_mm"] <= r["tibia_footprints_mm"]
+        R = Rotation.from_euler("y", r["axial_rotation_deg"], degrees=True)
+        assert np.linalg.norm(fp - R.apply(fp), axis=1).mean() == pytest.approx(r["tibia_footprints_axial_mm"], rel=1e-6)

@@ -74,10 +74,13 @@ def write_csv(rows: list[dict], path) -> None:
 def floor_markdown(floor: list[dict]) -> str:
     """A Markdown section from :func:`models.fem.prior_case.prior_floor`'s rows."""
     lines = ["", "", "What the prior's links allow at best: the prior posed at its best-matching flexion with the femur "
-             "placed exactly (tibia target point errors, mm).", "",
-             "| flexion | prior's flexion | tibia footprints | tibia epiphysis |", "|---:|---:|---:|---:|"]
+             "placed exactly (tibia target point errors, mm); of that pose error, the rotation about the tibia's "
+             "long axis, which the skin around the shank cannot show, and the footprint error it alone leaves.", "",
+             "| flexion | prior's flexion | tibia footprints | tibia epiphysis | axial rotation off (deg) | "
+             "footprints, axial rotation alone |", "|---:|---:|---:|---:|---:|---:|"]
     lines += [f"| {r['flexion_deg']:g} | {r['prior_flexion_deg']:.1f} | {r['tibia_footprints_mm']:.2f} | "
-              f"{r['tibia_epiphysis_mm']:.2f} |" for r in floor]
+              f"{r['tibia_epiphysis_mm']:.2f} | {r['axial_rotation_deg']:+.1f} | {r['tibia_footprints_axial_mm']:.2f} |"
+              for r in floor]
     return "\n".join(lines) + "\n"
 
 

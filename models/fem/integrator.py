@@ -12,14 +12,19 @@ were tried and cost more iterations after the prior's initialisation than they s
 across steps and refreshed (assembled on the fixed pattern, refactorised) by an amortised rule: when the
 iterations spent beyond the count right after the last refresh add up to more than the cost of a
 refactorisation (``refresh_cost`` iterations); and at once, in the middle of a step, when CG has not
-converged within ``restart_iterations`` (the matrix has moved too far from the factorised one, e.g. when
-many surface springs switch at once): the solve then finishes from where it stopped with the new factors.
+converged within ``restart_iterations``, or earlier when the rate at which the residual has fallen so far
+predicts that finishing would take longer than a refactorisation and the few iterations after one (the
+matrix has moved too far from the factorised one, e.g. when many surface springs or contact pairs switch
+at once; both costs are measured as the solver runs): the solve then finishes from where it stopped with
+the new factors. The conjugate-gradient loop is the toolkit's own, for that residual history.
 Fields that offer ``low_rank_factor()`` (springs between wide bone attachments) enter the preconditioner
 by the Woodbury identity instead of the assembled matrix.
 """
 
 from __future__ import annotations
 
+import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,7 +56,7 @@ class ImplicitEuler:
 
     def __init__(self, x0, mass, fields, dt=0.05, rayleigh_mass=0.1, rayleigh_stiffness=0.1,
                  tol=1e-5, max_iterations=200, refresh_cost=60, fixed=None, node_rotations=None,
-                 restart_iterations=40):
+                 restart_iterations=40, predict_refresh=True):
         self.x = np.array(x0, dtype=float)
         self.fixed = np.zeros(len(self.x), bool) if fixed is None else np.asarray(fixed, bool)
         self._free = np.repeat(~self.fixed, 3).astype(float)
@@ -62,6 +67,9 @@ class ImplicitEuler:
         self.a, self.b = float(rayleigh_mass), float(rayleigh_stiffness)
         self.tol, self.max_iterations, self.refresh_cost = tol, max_iterations, refresh_cost
         self.restart_iterations = restart_iterations
+        self.predict_refresh = predict_refresh
+        self._t_iteration = None      # measured seconds per CG iteration (running estimate)
+        self._t_factor = None         # measured seconds of the last refresh (assembly + factorisation)
         self._lu = None
         self._woodbury = None
         self._best_iterations = None  # CG iterations of the first step after the last refresh
@@ -104,6 +112,7 @@ class ImplicitEuler:
             self._lu = None  # the preconditioner must see the same free set
 
     def _refresh(self):
+        t0 = time.perf_counter()
         K = sum((f.matrix() for f in self.fields), sp.csr_matrix((3 * len(self.m),) * 2))
         A = (sp.diags(np.repeat(self._cm * self.m, 3)) + self._ck * K).tocsr()
         P = sp.diags(self._free)
@@ -122,6 +131,7 @@ class ImplicitEuler:
         self._R_ref = None if self.node_rotations is None else self.node_rotations()
         self._best_iterations, self._excess = None, 0.0
         self.refreshes += 1
+        self._t_factor = time.perf_counter() - t0
 
     def _solve_ref(self, r):
         """The refresh-time matrix's inverse applied to r (LU, plus the low-rank fields' correction)."""
@@ -131,9 +141,10 @@ class ImplicitEuler:
             z -= Z @ (Minv @ (Z.T @ r))
         return z
 
-    def _preconditioner(self, n):
+    def _preconditioner(self):
+        """z = P^-1 r: the refresh-time inverse, warped by the nodes' rotations since the refresh."""
         if self.node_rotations is None:
-            return spla.LinearOperator((n, n), matvec=self._solve_ref, dtype=float)
+            return self._solve_ref
         W = self.node_rotations() @ np.swapaxes(self._R_ref, 1, 2)  # (N, 3, 3)
         Wt = np.swapaxes(W, 1, 2)
 
@@ -141,7 +152,77 @@ class ImplicitEuler:
             z = self._solve_ref((Wt @ r.reshape(-1, 3, 1)).ravel())
             return (W @ z.reshape(-1, 3, 1)).ravel()
 
-        return spla.LinearOperator((n, n), matvec=apply, dtype=float)
+        return apply
+
+    def _pcg(self, rhs, x0, refreshed):
+        """Preconditioned conjugate gradients from ``x0`` to ``tol`` (relative to |rhs|); returns (x,
+        iterations, refreshed). When the kept factors fit this step's matrix badly, the solve refactorises
+        at this step's linearisation and continues from where it is: at ``restart_iterations`` at the
+        latest, and earlier when the convergence rate so far predicts that finishing would cost more than
+        a refactorisation (``predict_refresh``; both costs measured as the solver runs)."""
+        def A(p):
+            return self._operator(p.reshape(-1, 3)).ravel()
+
+        target = self.tol * max(float(np.linalg.norm(rhs)), 1e-300)
+        x = np.array(x0, dtype=float)
+        its = its_timed = 0  # its_timed: iterations before the last refresh
+        t0 = time.perf_counter()
+        while True:
+            M = self._preconditioner()
+            r = rhs - A(x)
+            rn = r0 = float(np.linalg.norm(r))
+            if rn <= target:
+                break
+            z = M(r)
+            p = z.copy()
+            rz = float(r @ z)
+            cap = self.max_iterations if refreshed else min(self.max_iterations, self.restart_iterations)
+            restart = False
+            best = rn
+            for i in range(1, cap + 1):
+                Ap = A(p)
+                alpha = rz / float(p @ Ap)
+                x += alpha * p
+                r -= alpha * Ap
+                its += 1
+                rn = float(np.linalg.norm(r))
+                if rn <= target:
+                    break
+                best = min(best, rn)  # the residual norm of CG need not fall monotonically
+                if not refreshed and (i == cap or self._refresh_pays(i, r0, best, target)):
+                    restart = True
+                    break
+                z = M(r)
+                rz, rz_old = float(r @ z), rz
+                p = z + (rz / rz_old) * p
+            if not restart:
+                break
+            # the kept factorisation no longer fits this step's matrix: refactorise now and go on from x
+            self._time_iterations(time.perf_counter() - t0, its - its_timed)
+            self._refresh()
+            refreshed = True
+            t0, its_timed = time.perf_counter(), its
+        self._time_iterations(time.perf_counter() - t0, its - its_timed)
+        return x, its, refreshed, its - its_timed
+
+    def _time_iterations(self, seconds, n):
+        """Running estimate of the time one CG iteration takes (operator plus preconditioner)."""
+        if n >= 2:
+            t = seconds / n
+            self._t_iteration = t if self._t_iteration is None else 0.7 * self._t_iteration + 0.3 * t
+
+    def _refresh_pays(self, i, r0, rn, target):
+        """Whether refactorising now is predicted to cost less than finishing with the kept factors: the
+        iterations still needed at the mean convergence rate so far, against a refactorisation plus the
+        iterations that follow one."""
+        if not self.predict_refresh or i < 4 or self._t_iteration is None or self._t_factor is None:
+            return False
+        rate = (rn / r0) ** (1.0 / i)
+        if rate >= 1.0:
+            return True
+        remaining = math.log(target / rn) / math.log(rate)
+        after = self._best_iterations if self._best_iterations is not None else 3
+        return remaining * self._t_iteration > self._t_factor + after * self._t_iteration
 
     def step(self, external=None, prescribed=None) -> StepInfo:
         """One step; ``external(x)`` returns external forces (N, 3) or None.
@@ -166,40 +247,24 @@ class ImplicitEuler:
         if prescribed is not None:
             rhs = rhs - self._full(vc)
         rhs = rhs.ravel() * self._free
-        n = rhs.size
-        A = spla.LinearOperator((n, n), matvec=lambda p: self._operator(p.reshape(-1, 3)).ravel(), dtype=float)
         refreshed = False
         if self._lu is None:
             self._refresh()
             refreshed = True
-        its = [0]
-
-        def count(_):
-            its[0] += 1
-
-        M = self._preconditioner(n)
-        cap = self.max_iterations if refreshed else min(self.max_iterations, self.restart_iterations)
-        v, info = spla.cg(A, rhs, x0=self.v.ravel(), M=M, rtol=self.tol, maxiter=cap, callback=count)
-        if info > 0 and not refreshed:
-            # the kept factorisation no longer fits this step's matrix: refactorise now, at this step's
-            # linearisation, and finish the solve from where CG stopped
-            self._refresh()
-            refreshed = True
-            v, _ = spla.cg(A, rhs, x0=v, M=self._preconditioner(n), rtol=self.tol, maxiter=self.max_iterations,
-                           callback=count)
-        elif not refreshed:
+        v, its, refreshed, its_fresh = self._pcg(rhs, self.v.ravel(), refreshed)
+        if not refreshed:
             if self._best_iterations is None:
-                self._best_iterations = its[0]
-            self._excess += max(0, its[0] - self._best_iterations)
+                self._best_iterations = its
+            self._excess += max(0, its - self._best_iterations)
             if self._excess > self.refresh_cost:
                 self._refresh()
                 refreshed = True
         elif self._best_iterations is None:
-            self._best_iterations = its[0]
+            self._best_iterations = its_fresh
         self.v = v.reshape(-1, 3) + vc
         self.x = x + self.dt * self.v
         self.time += self.dt
         self.steps += 1
-        res = float(np.linalg.norm(A @ v - rhs) / max(np.linalg.norm(rhs), 1e-300))
-        self.last_info = StepInfo(iterations=its[0], refreshed=refreshed, residual=res)
+        res = float(np.linalg.norm(self._operator(v.reshape(-1, 3)).ravel() - rhs) / max(np.linalg.norm(rhs), 1e-300))
+        self.last_info = StepInfo(iterations=its, refreshed=refreshed, residual=res)
         return self.last_info
