@@ -52,6 +52,11 @@ class ImplicitEuler:
         Time step (s); the paper's 0.05.
     rayleigh_mass, rayleigh_stiffness : float
         Rayleigh damping coefficients a (1/s) and b (s).
+    predict_refresh : bool
+        Refactorise mid-step when the convergence so far predicts it pays (see the module docstring).
+        The decision uses measured times, so where the refactorisations fall can differ between runs:
+        every step is still solved to ``tol``, but results agree to that tolerance rather than bit for
+        bit; ``False`` makes runs repeat exactly (refactorisations then only by the iteration counts).
     """
 
     def __init__(self, x0, mass, fields, dt=0.05, rayleigh_mass=0.1, rayleigh_stiffness=0.1,
