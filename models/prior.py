@@ -5,7 +5,8 @@ registered to the one-sided point cloud by ICP; the candidate whose registered s
 points wins. A coarse scan over the assembly range (10 deg) is refined by a golden-section search to
 0.5 deg. The posed skin is never built as one mesh: its parts (thigh, shank, knee and patella solids)
 are meshed, sampled and put in ray-casting scenes once and only moved per candidate (a union per
-candidate took about two thirds of the time). The fit quality reported: the points' RMS distance to the registered skin, the inlier fraction
+candidate took about two thirds of the time). The fit quality reported: the points' RMS distance to the
+registered skin, the inlier fraction
 and the flatness of the score around the optimum.
 
 Kinematics alone (method iv of the comparison): the bones posed by the mechanism at the estimated angle,
@@ -223,9 +224,8 @@ def estimate_flexion(mech: Mechanism, phantom: Phantom, points, T_init=None, coa
             x2 = x0 + GOLDEN * (x3 - x0)
     a = 0.5 * (x0 + x3)
     s, T, inl = _score(sk, a, pts, best[2])
-    s_c, T_c, inl_c = _score(sk, best[1], pts, best[2])  # the coarse scan's best, scored the same way
-    if s_c < s:
-        a, s, T, inl = best[1], s_c, T_c, inl_c
+    if f(best[1]) < s:  # the coarse scan's best, scored the same way as the refinement
+        a, (s, T, inl) = best[1], cache[best[1]]
     warnings = []
     if min(abs(a - lo), abs(a - hi)) < math.radians(1.0) or min(abs(a - a0), abs(a - a1)) < math.radians(1.0):
         warnings.append(f"the best fit lies at the end of the prior's assembly range ({math.degrees(lo):.1f} to "

@@ -149,3 +149,16 @@ def test_prior_floor_vanishes_for_an_exact_prior_and_not_for_a_perturbed_one(mod
         assert 0.0 < r["tibia_footprints_axial_mm"] <= r["tibia_footprints_mm"]
         R = Rotation.from_euler("y", r["axial_rotation_deg"], degrees=True)
         assert np.linalg.norm(fp - R.apply(fp), axis=1).mean() == pytest.approx(r["tibia_footprints_axial_mm"], rel=1e-6)
+
+
+def test_remaining_motion_is_the_geometric_tail():
+    """The surface phase's stopping rule: for motions falling geometrically, m_k = m_0 q^k, the motion
+    still to come after step k is the tail sum of the series, m_k q / (1 - q), summed here term by term;
+    ratios at or above the cap (a stalled or growing motion) are held at it."""
+    from models.fem.prior_case import remaining_motion
+
+    for q in (0.3, 0.6, 0.85):
+        m = 2.0 * q ** np.arange(400)
+        for k in (1, 5, 20):
+            assert remaining_motion(m[k], m[k - 1]) == pytest.approx(m[k + 1:].sum(), rel=1e-9)
+    assert remaining_motion(1.0, 0.5) == pytest.approx(9.0)  # growing: capped at 0.9, 0.9 / 0.1

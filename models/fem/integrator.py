@@ -6,17 +6,17 @@ One linear solve per step: with C = a M + b K and the forces linearised about th
 
 The matrix is never assembled per step: the conjugate-gradient solve applies the co-rotated element
 stiffnesses directly (gather, element products, scatter), warm-started from the last velocity and
-preconditioned with a sparse LU factorisation of the assembled matrix (symmetric mode, minimum-degree
-ordering of A + A^T: about half the fill and factorisation time of the default; single-precision factors
-were tried and cost more iterations after the prior's initialisation than they saved), warped by the nodes' rotations since it was computed. The factorisation is kept
-across steps and refreshed (assembled on the fixed pattern, refactorised) by an amortised rule: when the
-iterations spent beyond the count right after the last refresh add up to more than the cost of a
-refactorisation (``refresh_cost`` iterations); and at once, in the middle of a step, when CG has not
-converged within ``restart_iterations``, or earlier when the rate at which the residual has fallen so far
-predicts that finishing would take longer than a refactorisation and the few iterations after one (the
-matrix has moved too far from the factorised one, e.g. when many surface springs or contact pairs switch
-at once; both costs are measured as the solver runs): the solve then finishes from where it stopped with
-the new factors. The conjugate-gradient loop is the toolkit's own, for that residual history.
+preconditioned with a sparse LU factorisation of the assembled matrix (symmetric mode, minimum-degree ordering
+of A + A^T: about half the fill and factorisation time of the default; single-precision factors were tried and
+cost more iterations after the prior's initialisation than they saved), warped by the nodes' rotations since
+it was computed. The factorisation is kept across steps and refreshed (assembled on the fixed pattern,
+refactorised) by an amortised rule: when the iterations spent beyond the count right after the last refresh
+add up to more than the cost of a refactorisation (``refresh_cost`` iterations); and at once, in the middle of
+a step, when CG has not converged within ``restart_iterations``, or earlier when the rate at which the
+residual has fallen so far predicts that finishing would take longer than a refactorisation and the few
+iterations after one (the matrix has moved too far from the factorised one, e.g. when many surface springs or
+contact pairs switch at once; both costs are measured as the solver runs): the solve then finishes from where
+it stopped with the new factors. The conjugate-gradient loop is the toolkit's own, for that residual history.
 Fields that offer ``low_rank_factor()`` (springs between wide bone attachments) enter the preconditioner
 by the Woodbury identity instead of the assembled matrix.
 """

@@ -189,12 +189,18 @@ def _surface_phase(model, surf, max_steps, steps):
         skin = surf.map.apply(s.x)
         motion = float(np.linalg.norm(skin - skin_prev, axis=1).mean())
         skin_prev = skin
-        if last is not None:
-            r = min(motion / max(last, 1e-12), 0.9)
-            if motion + motion * r / (1.0 - r) < SETTLED_MM:
-                return steps, True
+        if last is not None and motion + remaining_motion(motion, last) < SETTLED_MM:
+            return steps, True
         last = motion
     return steps, False
+
+
+def remaining_motion(motion: float, previous: float, cap: float = 0.9) -> float:
+    """The motion still to come after a step that moved ``motion`` following one that moved ``previous``,
+    if the motions keep falling by their last ratio r (capped at ``cap``): the geometric tail
+    motion r / (1 - r)."""
+    r = min(motion / max(previous, 1e-12), cap)
+    return motion * r / (1.0 - r)
 
 
 def run_method(method: str, truth: Mechanism, prior: Mechanism, flexion_deg: float, camera=None,
