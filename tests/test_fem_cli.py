@@ -50,6 +50,7 @@ def test_knee_fem_short_run_prints_errors_and_records(tmp_path):
     (["--cloud", "missing.ply"], "no such point-cloud file"),
     (["--intrinsics", "1,2,3,4"], "go with --depth or --cloud"),
     (["--max-steps", "0"], "--max-steps must be positive"),
+    (["--bone-stall", "-1"], "--bone-stall must be a non-negative"),
 ])
 def test_knee_fem_bad_input(args, msg):
     assert_clean_error(run("fem", "volunteer", *args), msg)
@@ -188,3 +189,35 @@ def test_dropped_cells_are_not_counted_as_inverted(volunteer):
     model.solver.x = x
     extent = float(np.ptp(g.X, axis=0).max())
     assert check_state(model, 1, extent) == 0
+
+
+def test_bone_phase_stall_rule():
+    from models.fem.case import bone_phase_stalled
+
+    rising = 30.0 + 0.2 * np.arange(30)                       # 2 deg per 10 steps: still flexing
+    assert not bone_phase_stalled(rising, 10, 0.5)
+    plateau = np.concatenate([rising, np.full(11, rising[-1])])
+    assert bone_phase_stalled(plateau, 10, 0.5)
+    # an oscillation around a rising mean: the running maximum still rises, no stall
+    k = np.arange(40)
+    osc = 30.0 + 0.1 * k + 3.0 * np.sin(k * np.pi / 2)
+    assert not bone_phase_stalled(osc, 10, 0.5)
+    # ... and the same oscillation on a plateau stalls, although single steps move by 3 deg
+    assert bone_phase_stalled(30.0 + 3.0 * np.sin(k * np.pi / 2), 10, 0.5)
+    assert not bone_phase_stalled(np.full(10, 30.0), 10, 0.5)  # too few steps to judge
+    assert not bone_phase_stalled(np.full(50, 30.0), 0, 0.5)    # switched off
+
+
+def test_bone_phase_ends_on_stall_or_cap(volunteer):
+    """Without bone forces the knee never flexes: the phase ends stalled after 11 steps, or, with the
+    stall rule off, at the cap of a third of the step budget; the result says which."""
+    from models.fem.case import bone_phase_note, run_standard_case
+    from models.fem.scene import build_association_model
+
+    kw = dict(bone_force_scale=0.0, max_steps=36, progress=False)
+    r = run_standard_case(volunteer, 60.0, model=build_association_model(volunteer), **kw)
+    assert (r.bone_phase_end, r.steps_bone_phase) == ("stalled", 11)
+    assert "stopped flexing" in bone_phase_note(r)
+    r = run_standard_case(volunteer, 60.0, model=build_association_model(volunteer), bone_stall_steps=0, **kw)
+    assert (r.bone_phase_end, r.steps_bone_phase) == ("cap", 12)
+    assert "step cap" in bone_phase_note(r)

@@ -122,3 +122,20 @@ def test_material_validation():
     X, cells = _mesh("tet")
     with pytest.raises(KneeInputError, match="cells"):
         CorotationalElements(X, cells[:, :3], 1.0, 0.3)
+
+
+def test_closed_form_determinants_and_inverted_hexahedra():
+    from models.fem.elements import HEX_CORNERS, _hex_jacobians, det3, hex_inverted
+
+    rng = np.random.default_rng(4)
+    J = rng.normal(size=(50, 8, 3, 3))
+    assert np.allclose(det3(J), np.linalg.det(J), rtol=1e-12, atol=1e-12)
+    # the Jacobians against an independent per-Gauss-point sum over the nodes
+    cube = (HEX_CORNERS + 1.0) / 2.0
+    Xe = cube[None] * [2.0, 3.0, 5.0] + rng.normal(scale=0.1, size=(7, 8, 3))
+    dxi, Jh = _hex_jacobians(Xe)
+    ref = np.stack([[sum(np.outer(dxi[q, a], Xe[e, a]) for a in range(8)) for q in range(8)] for e in range(7)])
+    assert np.allclose(Jh, ref, atol=1e-12)
+    # a scaled cube is fine; mirrored it is inside out
+    assert not hex_inverted(Xe).any()
+    assert hex_inverted(Xe * [-1.0, 1.0, 1.0]).all()

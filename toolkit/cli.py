@@ -431,8 +431,8 @@ def _measured_points(args):
 
 
 def cmd_fem(args) -> int:
-    from models.fem.case import (FemDivergence, camera_from_spec, case_points, run_standard_case, truth_phantom,
-                                 truth_targets)
+    from models.fem.case import (FemDivergence, bone_phase_note, camera_from_spec, case_points, run_standard_case,
+                                 truth_phantom, truth_targets)
     from models.fem.depth import DepthNoise
     from models.fem.scene import FemSettings, build_association_model
     from models.fem.views import FemRecorder
@@ -445,6 +445,8 @@ def cmd_fem(args) -> int:
         raise KneeInputError(f"--flexion must be 0-150 deg, got {args.flexion}")
     if args.max_steps < 1:
         raise KneeInputError(f"--max-steps must be positive, got {args.max_steps}")
+    if not (math.isfinite(args.bone_stall) and args.bone_stall >= 0.0):
+        raise KneeInputError(f"--bone-stall must be a non-negative angle in degrees, got {args.bone_stall}")
     cam = camera_from_spec(args.camera)
     measured = _measured_points(args)
     mech = Mechanism.from_name(args.model)
@@ -484,6 +486,7 @@ def cmd_fem(args) -> int:
 
     try:
         r = run_standard_case(mech, args.flexion, cam, model=model, seed=args.seed, progress=False,
+                              bone_stall_deg=args.bone_stall, bone_stall_steps=10 if args.bone_stall > 0 else 0,
                               max_steps=args.max_steps, points=pts, truth_tf=truth_tf, on_step=on_step)
     except FemDivergence as e:
         if not args.quiet:
@@ -499,6 +502,8 @@ def cmd_fem(args) -> int:
     print(f"{mech.params.name}: {r.steps} steps ({r.steps_bone_phase} with bone forces) in {r.wall_seconds:.1f} s "
           f"({r.steps / r.wall_seconds:.1f} steps/s), {'converged' if r.converged else 'NOT converged'}; "
           f"registration ICP fitness {r.icp_fitness:.2f}")
+    if r.bone_phase_end:
+        print(bone_phase_note(r))
     if r.errors:
         print(f"flexion: true {r.flexion_true_deg:.1f} deg, FEM {r.flexion_estimated_deg:.1f} deg")
         print("target point errors, mean ± sd (mm):")
@@ -704,6 +709,9 @@ def build_parser() -> argparse.ArgumentParser:
     fe.add_argument("--depth-scale", type=float, default=1.0, help="depth units to mm (1)")
     fe.add_argument("--pose", help="text file with the 4x4 camera-to-model transform (default identity)")
     fe.add_argument("--max-steps", type=int, default=400, help="step limit (400)")
+    fe.add_argument("--bone-stall", type=float, default=0.5, metavar="DEG",
+                    help="end the bone forces when the largest flexion reached grows less than DEG over 10 steps "
+                         "(0.5; 0: only the paper's femur-tibia angle below 100 deg or a third of --max-steps)")
     fe.add_argument("--rrd", help="Rerun recording to write")
     fe.add_argument("--force", action="store_true", help="replace an existing recording")
     fe.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -91,12 +91,20 @@ def _hex_jacobians(Xe: np.ndarray):
     dxi[..., 0] = c[None, :, 0] * t[..., 1] * t[..., 2] / 8
     dxi[..., 1] = c[None, :, 1] * t[..., 0] * t[..., 2] / 8
     dxi[..., 2] = c[None, :, 2] * t[..., 0] * t[..., 1] / 8
-    return dxi, np.einsum("qak,eaj->eqkj", dxi, Xe)  # J[k, j] = d x_j / d xi_k
+    # J[e, q, k, j] = d x_j / d xi_k = sum_a dxi[q, a, k] Xe[e, a, j]: one matrix product (E 3, 8) (8, 24)
+    T = np.tensordot(np.asarray(Xe, float), dxi.transpose(0, 2, 1).reshape(24, 8), axes=([1], [1]))
+    return dxi, T.reshape(len(Xe), 3, 8, 3).transpose(0, 2, 3, 1)
+
+
+def det3(J: np.ndarray) -> np.ndarray:
+    """Determinants of stacked 3x3 matrices (..., 3, 3) (rows a, b, c: a . (b x c)); a closed form, much
+    cheaper than an LU per matrix for many small ones."""
+    return np.einsum("...i,...i->...", J[..., 0, :], np.cross(J[..., 1, :], J[..., 2, :]))
 
 
 def hex_inverted(Xe: np.ndarray) -> np.ndarray:
     """(E,) bool: hexahedra (E, 8, 3) with a non-positive Jacobian at any Gauss point."""
-    return np.any(np.linalg.det(_hex_jacobians(Xe)[1]) <= 0, axis=1)
+    return np.any(det3(_hex_jacobians(Xe)[1]) <= 0, axis=1)
 
 
 def hex_gradients(Xe: np.ndarray):
@@ -111,7 +119,7 @@ def hex_gradients(Xe: np.ndarray):
     dN : (E, 8 gauss, 8 nodes, 3) float and detJ : (E, 8) float
     """
     dxi, J = _hex_jacobians(Xe)
-    detJ = np.linalg.det(J)
+    detJ = det3(J)
     if np.any(detJ <= 0):
         raise KneeInputError("inverted or degenerate hexahedron (non-positive Jacobian) in the grid")
     dN = np.einsum("eqjk,qak->eqaj", np.linalg.inv(J), dxi)

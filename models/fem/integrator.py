@@ -114,7 +114,12 @@ class ImplicitEuler:
         free = np.repeat(~(self.fixed | mask), 3).astype(float)
         if not np.array_equal(free, self._free):
             self._free = free
-            self._lu = None  # the preconditioner must see the same free set
+            self.invalidate()  # the preconditioner must see the same free set
+
+    def invalidate(self) -> None:
+        """Forget the factorisation: the next step refactorises before it solves. For changes the kept
+        factors must not outlive: fields added or removed, damping changed, nodes held or released."""
+        self._lu = None
 
     def _refresh(self):
         t0 = time.perf_counter()

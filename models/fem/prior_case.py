@@ -33,8 +33,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from models.fem.case import (case_points, check_state, default_camera, register_to_model, run_standard_case, target_errors,
-                             truth_targets)
+from models.fem.case import (bone_phase_note, case_points, check_state, default_camera, register_to_model,
+                             run_standard_case, target_errors, truth_targets)
 from models.fem.depth import DepthNoise
 from models.fem.fields import MappedSprings, affine_point_map
 from models.fem.forces import SurfaceForces
@@ -106,7 +106,7 @@ def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: floa
     s.fixed = s.fixed | ~alive
     model.isolated_at_init = int((~alive).sum())
     s._set_prescribed(None)
-    s._lu = None
+    s.invalidate()
     return steps
 
 
@@ -158,11 +158,13 @@ class quasi_static:
         self.s = solver
 
     def __enter__(self):
-        self.b, self.s.b, self.s._lu = self.s.b, 0.0, None
+        self.b, self.s.b = self.s.b, 0.0
+        self.s.invalidate()
         return self.s
 
     def __exit__(self, *exc):
-        self.s.b, self.s._lu = self.b, None
+        self.s.b = self.b
+        self.s.invalidate()
         return False
 
 
@@ -240,6 +242,8 @@ def run_method(method: str, truth: Mechanism, prior: Mechanism, flexion_deg: flo
     if method_run == "paper":
         r = run_standard_case(prior, flexion_deg, cam, noise, model=model, seed=seed, progress=progress,
                               truth=truth, points=pts, truth_tf=truth_tf)
+        if r.bone_phase_end in ("stalled", "cap"):  # the paper's criterion not reached: say so
+            notes.append(bone_phase_note(r))
         return MethodResult(method, r.flexion_true_deg, r.flexion_estimated_deg, r.errors, r.steps,
                             time.perf_counter() - t0, r.converged, notes, _surfaces_fem(model, model.solver.x))
     if method == "kinematics":
@@ -270,7 +274,7 @@ def _fem_phases(method, model, prior, est, pts_model, T_world, truth_tf, flexion
     if method == "links":
         links = link_springs(model, prior)
         s.fields.append(links)
-    s._lu = None
+    s.invalidate()
     try:
         steps, converged = _surface_phase(model, surf, max_steps, steps)
         if links is not None:
@@ -281,13 +285,13 @@ def _fem_phases(method, model, prior, est, pts_model, T_world, truth_tf, flexion
                              f"{off.max():.2f} mm off its length); fallback: links released, continued as (ii)")
                 s.fields.remove(links)
                 links = None
-                s._lu = None
+                s.invalidate()
                 steps, converged = _surface_phase(model, surf, max_steps, steps)
     finally:
         for f in (surf, links):
             if f is not None and f in s.fields:
                 s.fields.remove(f)
-        s._lu = None
+        s.invalidate()
     flex, _ = knee_angles(model)
     errors = _evaluate(model, prior, truth_tf, x=s.x, T_world=T_world)
     return MethodResult(method, flexion_deg, flex, errors, steps, time.perf_counter() - t0, converged, notes,
