@@ -223,9 +223,9 @@ def estimate_flexion(mech: Mechanism, phantom: Phantom, points, T_init=None, coa
             x0, x1 = x1, x2
             x2 = x0 + GOLDEN * (x3 - x0)
     a = 0.5 * (x0 + x3)
-    s, T, inl = _score(sk, a, pts, best[2])
-    if f(best[1]) < s:  # the coarse scan's best, scored the same way as the refinement
-        a, (s, T, inl) = best[1], cache[best[1]]
+    if f(best[1]) < f(a):  # the coarse scan's best, scored the same way as the refinement
+        a = best[1]
+    s, T, inl = cache[a]
     warnings = []
     if min(abs(a - lo), abs(a - hi)) < math.radians(1.0) or min(abs(a - a0), abs(a - a1)) < math.radians(1.0):
         warnings.append(f"the best fit lies at the end of the prior's assembly range ({math.degrees(lo):.1f} to "

@@ -206,6 +206,7 @@ def test_bone_phase_stall_rule():
     assert bone_phase_stalled(30.0 + 3.0 * np.sin(k * np.pi / 2), 10, 0.5)
     assert not bone_phase_stalled(np.full(10, 30.0), 10, 0.5)  # too few steps to judge
     assert not bone_phase_stalled(np.full(50, 30.0), 0, 0.5)    # switched off
+    assert not bone_phase_stalled(np.full(50, 30.0), 10, 0.0)   # switched off (knee fem --bone-stall 0)
 
 
 def test_bone_phase_ends_on_stall_or_cap(volunteer):

@@ -486,7 +486,7 @@ def cmd_fem(args) -> int:
 
     try:
         r = run_standard_case(mech, args.flexion, cam, model=model, seed=args.seed, progress=False,
-                              bone_stall_deg=args.bone_stall, bone_stall_steps=10 if args.bone_stall > 0 else 0,
+                              bone_stall_deg=args.bone_stall,
                               max_steps=args.max_steps, points=pts, truth_tf=truth_tf, on_step=on_step)
     except FemDivergence as e:
         if not args.quiet:

@@ -143,7 +143,8 @@ def target_errors(targets: TargetPoints, est_f, est_t, truth_f, truth_t):
 def bone_phase_stalled(flexions, steps: int = 10, deg: float = 0.5) -> bool:
     """Whether the knee has stopped flexing under the bone forces: the largest flexion reached (a running
     maximum, as the flexion oscillates under the forces) grew less than ``deg`` over the last ``steps``
-    steps of ``flexions`` (deg, one per bone-force step). ``steps=0`` never stalls."""
+    steps of ``flexions`` (deg, one per bone-force step). ``steps=0`` or ``deg=0`` never stalls (the running
+    maximum cannot fall)."""
     f = np.asarray(flexions, float)
     if steps <= 0 or len(f) <= steps:
         return False
