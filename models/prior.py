@@ -73,6 +73,7 @@ class FlexionEstimate:
     scores: dict = field(default_factory=dict)
     contrast: float = float("nan")
     warnings: list = field(default_factory=list)
+    skin: "SkinModel | None" = field(default=None, repr=False)  # the posed-skin model the estimate used
 
     @property
     def at_range_end(self) -> bool:
@@ -235,7 +236,7 @@ def estimate_flexion(mech: Mechanism, phantom: Phantom, points, T_init=None, coa
         warnings.append(f"the fit hardly changes with flexion (second-best / best score {contrast:.3f}): the view "
                         "shows too little of the flexion")
     return FlexionEstimate(flexion=float(a), T_world_model=invert_poses(T), rms=s, inliers=inl, scores=scores,
-                           contrast=float(contrast), warnings=warnings)
+                           contrast=float(contrast), warnings=warnings, skin=sk)
 
 
 @dataclass
@@ -277,3 +278,114 @@ def kinematic_estimate(mech: Mechanism, est: FlexionEstimate) -> tuple[np.ndarra
     """Method (iv): world poses of femur and tibia from the mechanism at the estimated flexion."""
     tf, _ = mech.motion_at(np.array([est.flexion]))
     return est.T_world_model, est.T_world_model @ joint_to_pose(tf[0])
+
+
+#: The prior's uncertainty about the tibia's pose relative to the femur (about 2 mm per link endpoint),
+#: and the depth points' (noise plus skin-model mismatch); they weigh the shank correction.
+TIBIA_PRIOR_MM = 2.0
+TIBIA_PRIOR_DEG = 3.0
+POINT_SD_MM = 2.0
+#: Fewest shank points to attempt the correction.
+MIN_CORRECTION_POINTS = 200
+
+
+@dataclass
+class TibiaCorrection:
+    """The tibia's pose relative to the femur (model frame, (4, 4)) as the prior gives it (``T_prior``)
+    and corrected from the shank's depth points (``T``); the correction in the tibia's frame (rotation
+    about its x and z axes in deg, translation in mm; its axial rotation is the prior's), the shank points
+    used and their RMS distance to the shank before and after (mm). The correction's rotation is a
+    swing: its axis lies across the shank. ``note`` says why no correction was made, when none was."""
+
+    T_prior: np.ndarray
+    T: np.ndarray
+    rotation_deg: np.ndarray
+    translation_mm: np.ndarray
+    points: int
+    rms_before: float
+    rms_after: float
+    note: str | None = None
+
+    @property
+    def applied(self) -> bool:
+        return self.note is None
+
+    def describe(self) -> str:
+        if not self.applied:
+            return self.note
+        return (f"tibia pose corrected from {self.points} shank points: {np.linalg.norm(self.rotation_deg):.1f} deg, "
+                f"{np.linalg.norm(self.translation_mm):.1f} mm off the prior's path (points to shank RMS "
+                f"{self.rms_before:.1f} -> {self.rms_after:.1f} mm; axial rotation kept)")
+
+
+def _small_pose(xi) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    D = np.eye(4)
+    D[:3, :3] = Rotation.from_rotvec(xi[:3]).as_matrix()
+    D[:3, 3] = xi[3:]
+    return D
+
+
+def correct_tibia(mech: Mechanism, phantom: Phantom, points_model, alpha: float, skin: SkinModel | None = None,
+                  sigma_mm: float = TIBIA_PRIOR_MM, sigma_deg: float = TIBIA_PRIOR_DEG,
+                  point_sd_mm: float = POINT_SD_MM, band_mm: float = 8.0, iterations: int = 20) -> TibiaCorrection:
+    """Move the tibia off the prior's path as far as the shank's depth points show, and no further.
+
+    The mechanism at ``alpha`` places the tibia (relative to the femur) only as well as its parameters
+    (about 2 mm per link endpoint); the skin around the shank, seen by the camera, shows where the shank
+    is. A maximum a posteriori estimate of the tibia's pose correction ``D`` (``T = T_prior @ D``, in the
+    tibia's frame): Gauss-Newton on the points' point-to-plane distances to the shank's skin (sd
+    ``point_sd_mm``) plus the prior's Gaussian (sd ``sigma_mm`` per translation, ``sigma_deg`` per
+    rotation). The rotation about the shank's own axis (the tibia's y axis) is left at the prior's: the
+    shank's skin is a surface of revolution about it, so the points cannot show it.
+
+    ``points_model`` (P, 3): the depth points in the model (femur) frame, the thigh registered. Points are
+    used when within ``band_mm`` of the shank's skin and at least 2 mm closer to it than to the thigh, the
+    knee or the patella. With fewer than :data:`MIN_CORRECTION_POINTS` such points the prior's pose is
+    kept (stated in ``note``)."""
+    sk = skin or SkinModel(mech, phantom)
+    posed = sk.at(alpha)
+    T_prior = posed.parts[1][1]
+    shank = posed.parts[1][0]
+    pts = voxel_downsample(np.asarray(points_model, float), VOXEL_MM)
+    # the other parts stay where the prior has them: they only decide which points belong to the shank
+    others = np.min([q.signed_distance(transform_points(Ti, pts))
+                     for i, ((q, _), Ti) in enumerate(zip(posed.parts, posed.inverse)) if i != 1], axis=0)
+    free = [0, 2, 3, 4, 5]  # rotation about x and z, translation; the axial rotation (y) is not seen
+    prior_w = np.array([math.radians(sigma_deg) ** -2] * 2 + [sigma_mm ** -2] * 3)
+    xi = np.zeros(6)
+    D = np.eye(4)
+    rms = []
+    n = 0
+    for _ in range(iterations):
+        local = transform_points(invert_poses(T_prior @ D), pts)
+        d = shank.signed_distance(local)
+        sel = (np.abs(d) < band_mm) & (d < others - 2.0)
+        n = int(sel.sum())
+        if n < MIN_CORRECTION_POINTS:
+            break
+        p = local[sel]
+        c, nrm = shank.closest(p)
+        r = np.einsum("ij,ij->i", p - c, nrm)
+        rms.append(float(np.sqrt(np.mean(r ** 2))))
+        # moving the tibia by D exp(dxi) moves a point, in the tibia's frame, by -(dw x p) - dv
+        J = np.hstack([-np.cross(p, nrm), -nrm])[:, free]
+        H = J.T @ J / point_sd_mm ** 2 + np.diag(prior_w)
+        g = J.T @ r / point_sd_mm ** 2 + prior_w * xi[free]
+        dxi = np.zeros(6)
+        dxi[free] = -np.linalg.solve(H, g)
+        # additive in the rotation vector, whose axial component stays exactly zero: a swing of the shank
+        # (the Jacobian above, taken at D, is exact at D = I and within a few per cent for a few degrees)
+        xi = xi + dxi
+        D = _small_pose(xi)
+        if np.abs(dxi).max() < 1e-5:
+            break
+    if n < MIN_CORRECTION_POINTS:
+        return TibiaCorrection(T_prior, T_prior, np.zeros(3), np.zeros(3), n, float("nan"), float("nan"),
+                               note=f"the shank is seen by {n} depth points (at least {MIN_CORRECTION_POINTS} "
+                                    "needed to correct the tibia's pose): the prior's pose is kept")
+    local = transform_points(invert_poses(T_prior @ D), pts[sel])
+    c, nrm = shank.closest(local)
+    after = float(np.sqrt(np.mean(np.einsum("ij,ij->i", local - c, nrm) ** 2)))
+    return TibiaCorrection(T_prior, T_prior @ D, np.degrees(xi[:3]), xi[3:].copy(), n, rms[0], after)

@@ -162,3 +162,32 @@ def test_remaining_motion_is_the_geometric_tail():
         for k in (1, 5, 20):
             assert remaining_motion(m[k], m[k - 1]) == pytest.approx(m[k + 1:].sum(), rel=1e-9)
     assert remaining_motion(1.0, 0.5) == pytest.approx(9.0)  # growing: capped at 0.9, 0.9 / 0.1
+
+
+def test_initialisation_with_a_tibia_correction_and_links_at_rest_there(volunteer):
+    """A tibia pose corrected off the mechanism's path: the initialisation puts the tibia's cells exactly
+    there, and the links, re-fitted to that pose, are at rest in the initialised state (up to the bones'
+    elastic give); without a correction their rest lengths are the prior's own."""
+    import math
+
+    from models.fem.prior_case import bone_cell_nodes, initialise_from_prior, link_springs
+    from models.prior import _small_pose
+    from toolkit.conventions import invert_poses, joint_to_pose, transform_points
+
+    model = build_association_model(volunteer)
+    alpha = math.radians(60.0)
+    T_prior = joint_to_pose(volunteer.motion_at(np.array([alpha]))[0][0])
+    T0 = joint_to_pose(volunteer.motion_at(np.array([0.0]))[0][0])
+    D = _small_pose(np.array([0.02, 0.0, -0.03, 1.0, -1.0, 1.5]))
+    X = model.grid.X.copy()
+    initialise_from_prior(model, volunteer, alpha, correction=D)
+    _, mt = bone_cell_nodes(model)
+    np.testing.assert_allclose(model.solver.x[mt], transform_points(T_prior @ D @ invert_poses(T0), X[mt]), atol=1e-5)
+    links = link_springs(model, volunteer, T_tibia=T_prior @ D)
+    lengths = np.linalg.norm(links.mb.apply(model.solver.x) - links.ma.apply(model.solver.x), axis=1)
+    # (within the 0.2 mm that bone nodes in cells shared with the femur lag the prescribed motion, with or
+    # without a correction), while the correction changed the lengths by up to 1.5 mm
+    np.testing.assert_allclose(lengths, links.L0, atol=0.25)
+    own = [lk.length for lk in volunteer.params.links]
+    assert np.abs(np.asarray(links.L0) - own).max() > 1.0
+    np.testing.assert_allclose(link_springs(model, volunteer, T_tibia=T_prior).L0, own, atol=1e-6)

@@ -96,3 +96,57 @@ def test_a_knee_beyond_the_prior_range_is_flagged(volunteer, scene):
     short.assembly_range = (short.assembly_range[0], math.radians(60.0))  # as if the prior stopped at 60 deg
     est = estimate_flexion(short, ph, pts, coarse_step_deg=15.0)
     assert est.at_range_end and "end of the prior's assembly range" in est.warnings[0]
+
+
+def _shank_points(volunteer, ph, alpha, D, n=4000, seed=0, noise=0.3):
+    """Points spread over the shank's skin (more than 40 mm below the knee) with the tibia at
+    ``T_prior @ D``, in the femur frame."""
+    from trimesh.sample import sample_surface
+
+    from toolkit.conventions import transform_points
+
+    T = joint_to_pose(volunteer.motion_at(np.array([alpha]))[0][0]) @ D
+    shank = ph.skin_parts(np.eye(4))[1][0]
+    p, _ = sample_surface(shank, n, seed=seed)
+    p = p[p[:, 1] < -40.0]
+    p = p + np.random.default_rng(seed).normal(0.0, noise, p.shape)
+    return transform_points(T, p)
+
+
+def test_the_tibia_correction_recovers_what_the_shank_shows(volunteer):
+    """Shank points from a tibia moved off the mechanism's path: with a weak prior the correction finds the
+    move (the rotations across the shank and the translation); the rotation about the shank's own axis,
+    which the points cannot show, stays the prior's."""
+    from models.prior import _small_pose, correct_tibia
+
+    ph = build_phantom(volunteer.params)
+    alpha = math.radians(60.0)
+    xi = np.array([0.03, 0.0, -0.025, 1.5, -1.0, 2.0])  # rad about x, y, z (tibia frame); mm
+    pts = _shank_points(volunteer, ph, alpha, _small_pose(xi))
+    c = correct_tibia(volunteer, ph, pts, alpha, sigma_mm=100.0, sigma_deg=90.0)
+    assert c.applied and c.points > 500
+    np.testing.assert_allclose(c.rotation_deg, np.degrees(xi[:3]), atol=0.1)
+    np.testing.assert_allclose(c.translation_mm, xi[3:], atol=0.15)
+    assert c.rms_after < 0.5 < c.rms_before
+    # an added axial rotation moves no point of the capsule about that axis: the same correction, axial zero
+    twisted = _shank_points(volunteer, ph, alpha, _small_pose(xi) @ _small_pose(np.array([0, 0.1, 0, 0, 0, 0])))
+    c2 = correct_tibia(volunteer, ph, twisted, alpha, sigma_mm=100.0, sigma_deg=90.0)
+    assert c2.rotation_deg[1] == 0.0
+    np.testing.assert_allclose(c2.rotation_deg, c.rotation_deg, atol=0.1)
+    # a confident prior keeps the tibia where the mechanism has it
+    stiff = correct_tibia(volunteer, ph, pts, alpha, sigma_mm=0.01, sigma_deg=0.001)
+    assert np.linalg.norm(stiff.translation_mm) < 0.1 * np.linalg.norm(c.translation_mm)
+    assert np.linalg.norm(stiff.rotation_deg) < 0.1 * np.linalg.norm(c.rotation_deg)
+
+
+def test_no_tibia_correction_without_shank_points(volunteer):
+    from trimesh.sample import sample_surface
+
+    from models.prior import correct_tibia
+
+    ph = build_phantom(volunteer.params)
+    thigh, _ = sample_surface(ph.skin_parts(np.eye(4))[0][0], 3000, seed=0)
+    alpha = math.radians(60.0)
+    c = correct_tibia(volunteer, ph, thigh[thigh[:, 1] > 60.0], alpha)
+    assert not c.applied and "prior's pose is kept" in c.describe()
+    np.testing.assert_array_equal(c.T, c.T_prior)

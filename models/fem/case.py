@@ -213,6 +213,18 @@ def case_points(truth: Mechanism, flexion_deg: float, camera: Camera, noise: Dep
     return backproject(depth, camera.K, camera.T_world_cam), tf
 
 
+def _thigh_samples(model: AssociationModel) -> tuple[np.ndarray, np.ndarray]:
+    """Points spread densely over the model's thigh skin (the skin's vertices are ~15 mm apart) and their
+    faces' normals; sampled once per model (the skin at extension does not change)."""
+    cached = getattr(model, "_thigh_samples_cache", None)
+    if cached is None:
+        skin = trimesh.Trimesh(model.skin_vertices, model.skin_faces, process=False)
+        dense, face = trimesh.sample.sample_surface(skin, 30000, seed=0)
+        keep = dense[:, 1] > 60.0
+        cached = model._thigh_samples_cache = (dense[keep], skin.face_normals[face[keep]])
+    return cached
+
+
 def register_to_model(model: AssociationModel, points) -> tuple[np.ndarray, float, np.ndarray]:
     """Bring a point cloud (world/camera frame, roughly aligned with the model) to the model's frame by
     ICP of the seen thigh onto the model's thigh (the thigh is held, so the femur is where the model has
@@ -222,14 +234,12 @@ def register_to_model(model: AssociationModel, points) -> tuple[np.ndarray, floa
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < MIN_POINTS:
         raise KneeInputError(f"the point cloud has {len(pts) if pts.ndim == 2 else 0} points; at least {MIN_POINTS} "
                              f"are needed to place the knee")
-    skin = trimesh.Trimesh(model.skin_vertices, model.skin_faces, process=False)
-    dense, _ = trimesh.sample.sample_surface(skin, 30000, seed=0)  # the skin's vertices are ~15 mm apart
-    thigh_model = dense[dense[:, 1] > 60.0]
+    thigh_model, thigh_normals = _thigh_samples(model)
     thigh_seen = pts[pts[:, 1] > 70.0]
     if len(thigh_seen) < 200:
         raise KneeInputError(f"only {len(thigh_seen)} depth points on the thigh (more than 70 mm above the joint); "
                              f"at least 200 are needed for the registration")
-    T_reg, fitness, _ = icp(thigh_seen[::3], thigh_model, max_distance=10.0)
+    T_reg, fitness, _ = icp(thigh_seen[::3], thigh_model, max_distance=10.0, target_normals=thigh_normals)
     if fitness < MIN_ICP_FITNESS:
         raise KneeInputError(f"the registration of the point cloud to the model failed (ICP fitness {fitness:.2f}, "
                              f"below {MIN_ICP_FITNESS})")

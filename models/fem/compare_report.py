@@ -26,7 +26,7 @@ METHOD_COLOURS = {"paper": (220, 60, 60), "init": (240, 170, 40), "links": (40, 
                   "kinematics": (70, 120, 230)}
 COLUMNS = ["camera", "flexion_true_deg", "method", "flexion_estimated_deg", "femur_footprints_mm",
            "tibia_footprints_mm", "femur_epiphysis_mm", "tibia_epiphysis_mm", "steps", "wall_seconds", "converged",
-           "notes", "failed"]
+           "tibia_correction_deg", "tibia_correction_mm", "notes", "failed"]
 
 
 def footprint_error(row: dict) -> float:
@@ -73,9 +73,11 @@ def write_csv(rows: list[dict], path) -> None:
 
 def floor_markdown(floor: list[dict]) -> str:
     """A Markdown section from :func:`models.fem.prior_case.prior_floor`'s rows."""
-    lines = ["", "", "What the prior's links allow at best: the prior posed at its best-matching flexion with the femur "
-             "placed exactly (tibia target point errors, mm); of that pose error, the rotation about the tibia's "
-             "long axis, which the skin around the shank cannot show, and the footprint error it alone leaves.", "",
+    lines = ["", "", "The prior's own tibia error: the prior posed at its best-matching flexion with the femur placed "
+             "exactly (tibia target point errors, mm); of that pose error, the rotation about the tibia's long axis, "
+             "which the skin around the shank cannot show (methods ii and iii correct the tibia's pose from the "
+             "shank's depth points except for it), and the footprint error it alone leaves: about what remains "
+             "at best.", "",
              "| flexion | prior's flexion | tibia footprints | tibia epiphysis | axial rotation off (deg) | "
              "footprints, axial rotation alone |", "|---:|---:|---:|---:|---:|---:|"]
     lines += [f"| {r['flexion_deg']:g} | {r['prior_flexion_deg']:.1f} | {r['tibia_footprints_mm']:.2f} | "
@@ -90,17 +92,19 @@ def markdown(rows: list[dict], methods, title: str) -> str:
              "Target point errors: mean distance (mm) between the estimated and the true bone surface points, "
              "ACL/PCL footprints and the whole epiphysis, per bone.", "",
              "| camera | flexion | method | estimate (deg) | femur footprints | tibia footprints | femur epiphysis | "
-             "tibia epiphysis | steps | wall (s) | converged | notes |",
-             "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|---|"]
+             "tibia epiphysis | steps | wall (s) | converged | tibia corrected (deg / mm) | notes |",
+             "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---|"]
     for r in rows:
         if r.get("failed"):
             lines.append(f"| {r['camera']} | {r['flexion_true_deg']:g} | {r['method']} | failed: {r['failed']} "
-                         f"| | | | | | | | |")
+                         f"| | | | | | | | | |")
             continue
+        deg, mm = r.get("tibia_correction_deg", float("nan")), r.get("tibia_correction_mm", float("nan"))
+        corr = "" if not np.isfinite(deg) else f"{deg:.1f} / {mm:.1f}"
         lines.append(f"| {r['camera']} | {r['flexion_true_deg']:g} | {r['method']} | {r['flexion_estimated_deg']:.1f} | "
                      f"{r['femur_footprints_mm']:.2f} | {r['tibia_footprints_mm']:.2f} | {r['femur_epiphysis_mm']:.2f} | "
                      f"{r['tibia_epiphysis_mm']:.2f} | {r['steps']} | {r['wall_seconds']:.1f} | {r['converged']} | "
-                     f"{r.get('notes', '')} |")
+                     f"{corr} | {r.get('notes', '')} |")
     lines += ["", "## Summary (medians over the cases)", "",
               "| method | cases | failed | footprints (mm) | epiphysis (mm) | flexion error (deg) | wall (s) |",
               "|---|---:|---:|---:|---:|---:|---:|"]

@@ -35,3 +35,9 @@ class SurfaceQuery:
         """(P, 3) -> (P, 3) closest points on the surface."""
         p = o3d.core.Tensor(np.asarray(points, np.float32).reshape(-1, 3))
         return self.scene.compute_closest_points(p)["points"].numpy().astype(float)
+
+    def closest(self, points) -> tuple[np.ndarray, np.ndarray]:
+        """(P, 3) -> closest points on the surface (P, 3) and the normals of their triangles (P, 3)."""
+        p = o3d.core.Tensor(np.asarray(points, np.float32).reshape(-1, 3))
+        r = self.scene.compute_closest_points(p)
+        return r["points"].numpy().astype(float), r["primitive_normals"].numpy().astype(float)

@@ -32,6 +32,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from models.fem.case import (bone_phase_note, case_points, check_state, default_camera, register_to_model,
                              run_standard_case, target_errors, truth_targets)
@@ -41,7 +42,7 @@ from models.fem.forces import SurfaceForces
 from models.fem.mapping import TrilinearMapping
 from models.fem.scene import AssociationModel, bone_cell_masks, build_association_model, knee_angles
 from models.mechanism.solver import Mechanism
-from models.prior import estimate_flexion
+from models.prior import TibiaCorrection, _small_pose, correct_tibia, estimate_flexion
 from toolkit.conventions import invert_poses, joint_to_pose, transform_points
 from toolkit.errors import KneeInputError
 
@@ -59,6 +60,7 @@ class MethodResult:
     converged: bool
     notes: list = field(default_factory=list)
     surfaces: dict = field(default_factory=dict)  # bone -> final surface vertices (V, 3), world frame
+    tibia_correction: TibiaCorrection | None = None  # (ii), (iii): the tibia's pose corrected from the shank
 
 
 def bone_cell_nodes(model: AssociationModel):
@@ -67,18 +69,23 @@ def bone_cell_nodes(model: AssociationModel):
 
 
 def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: float, increments: int = 4,
-                          settle: int = 1) -> int:
+                          settle: int = 1, correction: np.ndarray | None = None) -> int:
     """Move the tibia along the prior's path from extension to ``alpha`` (rad) with the bone cells'
     nodes prescribed (femur's held at rest), solving the grid's static equilibrium at each increment
     (quasi-static steps, see :func:`quasi_static`), and make that configuration the model's stress-free
-    reference; returns the steps taken."""
+    reference; returns the steps taken. ``correction`` (4, 4): a pose correction of the tibia in its own
+    frame at ``alpha`` (:func:`models.prior.correct_tibia`), blended in along the increments."""
     s = model.solver
     mf, mt = bone_cell_nodes(model)
     mask = mf | mt
     X = model.grid.X
     T0 = joint_to_pose(prior.motion_at(np.array([0.0]))[0][0])
-    path = alpha * np.arange(1, increments + 1) / increments
-    poses = joint_to_pose(prior.motion_at(path)[0]) @ invert_poses(T0)
+    fractions = np.arange(1, increments + 1) / increments
+    poses = joint_to_pose(prior.motion_at(alpha * fractions)[0])
+    if correction is not None:
+        xi = np.concatenate([Rotation.from_matrix(correction[:3, :3]).as_rotvec(), correction[:3, 3]])
+        poses = poses @ np.stack([_small_pose(f * xi) for f in fractions])
+    poses = poses @ invert_poses(T0)
     steps = 0
     target = X.copy()
     for T in list(poses) + [poses[-1]] * settle:
@@ -113,14 +120,20 @@ def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: floa
 LINK_REACH = 60.0  # mm: a link end is attached to every bone node within this of its nearest node's distance
 
 
-def link_springs(model: AssociationModel, prior: Mechanism, k: float = 1000.0):
-    """The prior's five TF links as springs between femur- and tibia-attached points (rest: extension)."""
+def link_springs(model: AssociationModel, prior: Mechanism, k: float = 1000.0, T_tibia: np.ndarray | None = None):
+    """The prior's five TF links as springs between femur- and tibia-attached points (attached at
+    extension). Rest lengths: the prior's link lengths, or with ``T_tibia`` (the tibia's pose relative to
+    the femur, model frame, e.g. corrected from the depth points) the links' lengths at that pose: the
+    prior with its five lengths re-fitted so that its path passes through that pose."""
     T0 = joint_to_pose(prior.motion_at(np.array([0.0]))[0][0])
     a = np.vstack([lk.femur for lk in prior.params.links])
-    b = transform_points(T0, np.vstack([lk.tibia for lk in prior.params.links]))
+    local = np.vstack([lk.tibia for lk in prior.params.links])
+    b = transform_points(T0, local)
+    rest = [lk.length for lk in prior.params.links]
+    if T_tibia is not None:
+        rest = np.linalg.norm(a - transform_points(T_tibia, local), axis=1)
     maps = (affine_point_map(model.femur, a, reach=LINK_REACH), affine_point_map(model.tibia, b, reach=LINK_REACH))
-    return MappedSprings(model.grid, a, b, k, rest_length=[lk.length for lk in prior.params.links], maps=maps,
-                         low_rank=True)
+    return MappedSprings(model.grid, a, b, k, rest_length=rest, maps=maps, low_rank=True)
 
 
 def _evaluate(model, prior, truth_tf, x=None, T_femur=None, T_tibia=None, T_world=None):
@@ -259,20 +272,25 @@ def run_method(method: str, truth: Mechanism, prior: Mechanism, flexion_deg: flo
     # (the thigh is held in the model, so the femur is placed by the thigh as in the paper's method)
     pts_model, _, T_reg = register_to_model(model, transform_points(invert_poses(est.T_world_model), pts))
     T_world = est.T_world_model @ invert_poses(T_reg)
+    # the tibia off the prior's path as far as the shank's points show (its axial rotation stays the prior's)
+    corr = correct_tibia(prior, model.phantom, pts_model, est.flexion, skin=est.skin)
+    if not corr.applied:
+        notes.append(corr.note)
     s = model.solver
     with quasi_static(s):
-        return _fem_phases(method, model, prior, est, pts_model, T_world, truth_tf, flexion_deg, max_steps, notes, t0)
+        return _fem_phases(method, model, prior, est, corr, pts_model, T_world, truth_tf, flexion_deg, max_steps,
+                           notes, t0)
 
 
-def _fem_phases(method, model, prior, est, pts_model, T_world, truth_tf, flexion_deg, max_steps, notes, t0):
+def _fem_phases(method, model, prior, est, corr, pts_model, T_world, truth_tf, flexion_deg, max_steps, notes, t0):
     """Methods (ii) and (iii) after the registration: initialisation, surface phase, evaluation."""
     s = model.solver
-    steps = initialise_from_prior(model, prior, est.flexion)
+    steps = initialise_from_prior(model, prior, est.flexion, correction=invert_poses(corr.T_prior) @ corr.T)
     surf = SurfaceForces(model.grid, model.skin_vertices, pts_model, k=2.0)
     s.fields.append(surf)
     links = None
     if method == "links":
-        links = link_springs(model, prior)
+        links = link_springs(model, prior, T_tibia=corr.T)
         s.fields.append(links)
     s.invalidate()
     try:
@@ -295,7 +313,7 @@ def _fem_phases(method, model, prior, est, pts_model, T_world, truth_tf, flexion
     flex, _ = knee_angles(model)
     errors = _evaluate(model, prior, truth_tf, x=s.x, T_world=T_world)
     return MethodResult(method, flexion_deg, flex, errors, steps, time.perf_counter() - t0, converged, notes,
-                        _surfaces_fem(model, s.x, T_world))
+                        _surfaces_fem(model, s.x, T_world), corr)
 
 
 def prior_floor(model: AssociationModel, truth: Mechanism, prior: Mechanism, flexions_deg,
@@ -353,7 +371,13 @@ def result_row(camera_name: str, flexion_deg: float, r: MethodResult) -> dict:
             "femur_epiphysis_mm": r.errors["femur"]["epiphysis"][0],
             "tibia_epiphysis_mm": r.errors["tibia"]["epiphysis"][0],
             "steps": r.steps, "wall_seconds": r.wall_seconds, "converged": r.converged,
+            "tibia_correction_deg": _norm_or_nan(r.tibia_correction, "rotation_deg"),
+            "tibia_correction_mm": _norm_or_nan(r.tibia_correction, "translation_mm"),
             "notes": "; ".join(r.notes), "failed": ""}
+
+
+def _norm_or_nan(corr: TibiaCorrection | None, attr: str) -> float:
+    return float(np.linalg.norm(getattr(corr, attr))) if corr is not None and corr.applied else float("nan")
 
 
 def compare_cases(truth: Mechanism, prior: Mechanism, flexions_deg, cameras: dict, methods=METHODS,
