@@ -190,6 +190,9 @@ def cmd_demo(args) -> int:
         ep = 0.5 * (r["femur_epiphysis_mm"] + r["tibia_epiphysis_mm"])
         print(f"{METHOD_LABELS[r['method']]:44s} {r['flexion_estimated_deg']:7.1f}° {fp:8.2f} mm {ep:7.2f} mm "
               f"{r['steps']:6d} {r['wall_seconds']:9.1f}")
+        if math.isfinite(r.get("tibia_correction_deg", float("nan"))):
+            print(f"  the tibia's pose corrected from the shank's depth points: {r['tibia_correction_deg']:.1f} deg, "
+                  f"{r['tibia_correction_mm']:.1f} mm off the prior's path (its axial rotation kept)")
         if r["notes"]:
             print(f"  note: {r['notes']}")
     print(f"comparison: {out_dir / 'compare.md'}, {out_dir / 'compare.png'}")

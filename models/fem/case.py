@@ -225,11 +225,12 @@ def _thigh_samples(model: AssociationModel) -> tuple[np.ndarray, np.ndarray]:
     return cached
 
 
-def register_to_model(model: AssociationModel, points) -> tuple[np.ndarray, float, np.ndarray]:
+def register_to_model(model: AssociationModel, points, iterations: int = 60) -> tuple[np.ndarray, float, np.ndarray]:
     """Bring a point cloud (world/camera frame, roughly aligned with the model) to the model's frame by
     ICP of the seen thigh onto the model's thigh (the thigh is held, so the femur is where the model has
     it); returns the points in the model frame, the ICP fitness and the transform (4, 4) applied. Raises
-    on too few points or a failed registration."""
+    on too few points or a failed registration. ``iterations``: of the ICP (fewer suffice when the points
+    come registered by the flexion estimate)."""
     pts = np.asarray(points, float)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < MIN_POINTS:
         raise KneeInputError(f"the point cloud has {len(pts) if pts.ndim == 2 else 0} points; at least {MIN_POINTS} "
@@ -239,7 +240,8 @@ def register_to_model(model: AssociationModel, points) -> tuple[np.ndarray, floa
     if len(thigh_seen) < 200:
         raise KneeInputError(f"only {len(thigh_seen)} depth points on the thigh (more than 70 mm above the joint); "
                              f"at least 200 are needed for the registration")
-    T_reg, fitness, _ = icp(thigh_seen[::3], thigh_model, max_distance=10.0, target_normals=thigh_normals)
+    T_reg, fitness, _ = icp(thigh_seen[::3], thigh_model, max_distance=10.0, iterations=iterations,
+                            target_normals=thigh_normals)
     if fitness < MIN_ICP_FITNESS:
         raise KneeInputError(f"the registration of the point cloud to the model failed (ICP fitness {fitness:.2f}, "
                              f"below {MIN_ICP_FITNESS})")

@@ -6,8 +6,8 @@ One linear solve per step: with C = a M + b K and the forces linearised about th
 
 The matrix is never assembled per step: the conjugate-gradient solve applies the co-rotated element
 stiffnesses directly (gather, element products, scatter), warm-started from the last velocity and
-preconditioned with a sparse LU factorisation of the assembled matrix (symmetric mode, minimum-degree ordering
-of A + A^T: about half the fill and factorisation time of the default; single-precision factors were tried and
+preconditioned with a sparse factorisation of the assembled matrix (:mod:`models.fem.factor`: a supernodal
+Cholesky, CHOLMOD, when available, else SuperLU's LU in symmetric mode; single-precision factors were tried and
 cost more iterations after the prior's initialisation than they saved), warped by the nodes' rotations since
 it was computed. The factorisation is kept across steps and refreshed (assembled on the fixed pattern,
 refactorised) by an amortised rule: when the iterations spent beyond the count right after the last refresh
@@ -29,7 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
+
+from models.fem.factor import SparseFactor
 
 
 @dataclass
@@ -57,11 +58,13 @@ class ImplicitEuler:
         The decision uses measured times, so where the refactorisations fall can differ between runs:
         every step is still solved to ``tol``, but results agree to that tolerance rather than bit for
         bit; ``False`` makes runs repeat exactly (refactorisations then only by the iteration counts).
+    factor_backend : str
+        "cholmod" (default: supernodal Cholesky when cvxopt is installed, SuperLU otherwise) or "superlu".
     """
 
     def __init__(self, x0, mass, fields, dt=0.05, rayleigh_mass=0.1, rayleigh_stiffness=0.1,
                  tol=1e-5, max_iterations=200, refresh_cost=60, fixed=None, node_rotations=None,
-                 restart_iterations=40, predict_refresh=True):
+                 restart_iterations=40, predict_refresh=True, factor_backend="cholmod"):
         self.x = np.array(x0, dtype=float)
         self.fixed = np.zeros(len(self.x), bool) if fixed is None else np.asarray(fixed, bool)
         self._free = np.repeat(~self.fixed, 3).astype(float)
@@ -73,6 +76,8 @@ class ImplicitEuler:
         self.tol, self.max_iterations, self.refresh_cost = tol, max_iterations, refresh_cost
         self.restart_iterations = restart_iterations
         self.predict_refresh = predict_refresh
+        self.adaptive_refresh = True  # the amortised rule's threshold measured (see _refresh_cost_iterations)
+        self.factor_backend = factor_backend  # "cholmod" (falls back to SuperLU when unavailable) or "superlu"
         self._t_iteration = None      # measured seconds per CG iteration (running estimate)
         self._t_factor = None         # measured seconds of the last refresh (assembly + factorisation)
         self._lu = None
@@ -127,14 +132,13 @@ class ImplicitEuler:
         A = (sp.diags(np.repeat(self._cm * self.m, 3)) + self._ck * K).tocsr()
         P = sp.diags(self._free)
         A = (P @ A @ P + sp.diags(1 - self._free)).tocsc()
-        self._lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                             options={"SymmetricMode": True})
+        self._lu = SparseFactor(A, prefer=self.factor_backend)
         # low-rank fields (springs between wide bone attachments) by the Woodbury identity:
         # (A + c U U^T)^-1 = A^-1 - Z (I/c + U^T Z)^-1 Z^T, Z = A^-1 U
         Us = [u for u in (getattr(f, "low_rank_factor", lambda: None)() for f in self.fields) if u is not None]
         if Us:
             U = np.hstack(Us) * self._free[:, None]
-            Z = self._lu.solve(np.asfortranarray(U))
+            Z = self._lu.solve(U)
             self._woodbury = (Z, np.linalg.inv(np.eye(U.shape[1]) / self._ck + U.T @ Z))
         else:
             self._woodbury = None
@@ -215,6 +219,13 @@ class ImplicitEuler:
         self._time_iterations(time.perf_counter() - t0, its - its_timed)
         return x, its, refreshed, its - its_timed
 
+    def _refresh_cost_iterations(self) -> float:
+        """What a refactorisation costs, in CG iterations: measured (its time over an iteration's) once both
+        have been timed, ``refresh_cost`` until then."""
+        if self.adaptive_refresh and self._t_factor is not None and self._t_iteration:
+            return self._t_factor / self._t_iteration
+        return self.refresh_cost
+
     def _time_iterations(self, seconds, n):
         """Running estimate of the time one CG iteration takes (operator plus preconditioner)."""
         if n >= 2:
@@ -266,7 +277,7 @@ class ImplicitEuler:
             if self._best_iterations is None:
                 self._best_iterations = its
             self._excess += max(0, its - self._best_iterations)
-            if self._excess > self.refresh_cost:
+            if self._excess > self._refresh_cost_iterations():
                 self._refresh()
                 refreshed = True
         elif self._best_iterations is None:
