@@ -174,3 +174,17 @@ def test_cg_refactorises_mid_step_when_the_kept_factors_no_longer_fit():
     never, _ = run(10 ** 6, predict=True, costs=(1e-9, 1e9))
     assert never.refreshes == 1
     np.testing.assert_allclose(capped.x, free.x, atol=1e-4 * np.abs(free.x - g.X).max())
+
+
+def test_the_amortised_refresh_threshold_is_measured_unless_given():
+    """By default a refactorisation's cost in CG iterations is its measured time over an iteration's (60
+    until both are timed); a given ``refresh_cost`` is used as is."""
+    g = _box_grid((4, 2, 2), (40.0, 10.0, 10.0))
+    fields = [GridElasticity(g, E=1.0, nu=0.3)]
+    s = ImplicitEuler(g.X, np.full(len(g.X), 1e-6), fields, dt=0.05)
+    assert s._refresh_cost_iterations() == 60
+    s._t_factor, s._t_iteration = 0.12, 0.004
+    assert s._refresh_cost_iterations() == pytest.approx(30.0)
+    fixed = ImplicitEuler(g.X, np.full(len(g.X), 1e-6), fields, dt=0.05, refresh_cost=25)
+    fixed._t_factor, fixed._t_iteration = 0.12, 0.004
+    assert fixed._refresh_cost_iterations() == 25

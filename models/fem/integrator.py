@@ -11,7 +11,8 @@ Cholesky, CHOLMOD, when available, else SuperLU's LU in symmetric mode; single-p
 cost more iterations after the prior's initialisation than they saved), warped by the nodes' rotations since
 it was computed. The factorisation is kept across steps and refreshed (assembled on the fixed pattern,
 refactorised) by an amortised rule: when the iterations spent beyond the count right after the last refresh
-add up to more than the cost of a refactorisation (``refresh_cost`` iterations); and at once, in the middle of
+add up to more than the cost of a refactorisation (in iterations: measured, its time over an iteration's,
+or a fixed ``refresh_cost``); and at once, in the middle of
 a step, when CG has not converged within ``restart_iterations``, or earlier when the rate at which the
 residual has fallen so far predicts that finishing would take longer than a refactorisation and the few
 iterations after one (the matrix has moved too far from the factorised one, e.g. when many surface springs or
@@ -63,7 +64,7 @@ class ImplicitEuler:
     """
 
     def __init__(self, x0, mass, fields, dt=0.05, rayleigh_mass=0.1, rayleigh_stiffness=0.1,
-                 tol=1e-5, max_iterations=200, refresh_cost=60, fixed=None, node_rotations=None,
+                 tol=1e-5, max_iterations=200, refresh_cost=None, fixed=None, node_rotations=None,
                  restart_iterations=40, predict_refresh=True, factor_backend="cholmod"):
         self.x = np.array(x0, dtype=float)
         self.fixed = np.zeros(len(self.x), bool) if fixed is None else np.asarray(fixed, bool)
@@ -73,10 +74,12 @@ class ImplicitEuler:
         self.fields = list(fields)
         self.dt = float(dt)
         self.a, self.b = float(rayleigh_mass), float(rayleigh_stiffness)
-        self.tol, self.max_iterations, self.refresh_cost = tol, max_iterations, refresh_cost
+        self.tol, self.max_iterations = tol, max_iterations
+        self.refresh_cost = 60 if refresh_cost is None else refresh_cost
         self.restart_iterations = restart_iterations
         self.predict_refresh = predict_refresh
-        self.adaptive_refresh = True  # the amortised rule's threshold measured (see _refresh_cost_iterations)
+        # the amortised rule's threshold measured (see _refresh_cost_iterations) unless refresh_cost is given
+        self.adaptive_refresh = refresh_cost is None
         self.factor_backend = factor_backend  # "cholmod" (falls back to SuperLU when unavailable) or "superlu"
         self._t_iteration = None      # measured seconds per CG iteration (running estimate)
         self._t_factor = None         # measured seconds of the last refresh (assembly + factorisation)
