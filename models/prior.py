@@ -292,15 +292,14 @@ MIN_CORRECTION_POINTS = 200
 @dataclass
 class TibiaCorrection:
     """The tibia's pose relative to the femur (model frame, (4, 4)) as the prior gives it (``T_prior``)
-    and corrected from the shank's depth points (``T``); the correction in the tibia's frame (rotation
-    about its x and z axes in deg, translation in mm; its axial rotation is the prior's), the shank points
-    used and their RMS distance to the shank before and after (mm). The correction's rotation is a
-    swing: its axis lies across the shank. ``note`` says why no correction was made, when none was."""
+    and the correction found from the shank's depth points, ``xi`` (6,): a rotation vector (rad) and a
+    translation (mm) in the tibia's frame, ``T = T_prior @ small_pose(xi)``. The rotation is a swing: its
+    axial component (about the tibia's y axis) is zero, the prior's axial rotation kept. Also the shank
+    points used and their RMS distance to the shank before and after (mm); ``note`` says why no correction
+    was made, when none was."""
 
     T_prior: np.ndarray
-    T: np.ndarray
-    rotation_deg: np.ndarray
-    translation_mm: np.ndarray
+    xi: np.ndarray
     points: int
     rms_before: float
     rms_after: float
@@ -310,15 +309,21 @@ class TibiaCorrection:
     def applied(self) -> bool:
         return self.note is None
 
-    def describe(self) -> str:
-        if not self.applied:
-            return self.note
-        return (f"tibia pose corrected from {self.points} shank points: {np.linalg.norm(self.rotation_deg):.1f} deg, "
-                f"{np.linalg.norm(self.translation_mm):.1f} mm off the prior's path (points to shank RMS "
-                f"{self.rms_before:.1f} -> {self.rms_after:.1f} mm; axial rotation kept)")
+    @property
+    def T(self) -> np.ndarray:
+        return self.T_prior @ small_pose(self.xi)
+
+    @property
+    def rotation_deg(self) -> np.ndarray:
+        return np.degrees(self.xi[:3])
+
+    @property
+    def translation_mm(self) -> np.ndarray:
+        return self.xi[3:]
 
 
-def _small_pose(xi) -> np.ndarray:
+def small_pose(xi) -> np.ndarray:
+    """(4, 4) pose from a rotation vector (rad) and a translation: ``xi`` (6,)."""
     from scipy.spatial.transform import Rotation
 
     D = np.eye(4)
@@ -378,14 +383,14 @@ def correct_tibia(mech: Mechanism, phantom: Phantom, points_model, alpha: float,
         # additive in the rotation vector, whose axial component stays exactly zero: a swing of the shank
         # (the Jacobian above, taken at D, is exact at D = I and within a few per cent for a few degrees)
         xi = xi + dxi
-        D = _small_pose(xi)
+        D = small_pose(xi)
         if np.abs(dxi).max() < 1e-5:
             break
     if n < MIN_CORRECTION_POINTS:
-        return TibiaCorrection(T_prior, T_prior, np.zeros(3), np.zeros(3), n, float("nan"), float("nan"),
+        return TibiaCorrection(T_prior, np.zeros(6), n, float("nan"), float("nan"),
                                note=f"the shank is seen by {n} depth points (at least {MIN_CORRECTION_POINTS} "
                                     "needed to correct the tibia's pose): the prior's pose is kept")
     local = transform_points(invert_poses(T_prior @ D), pts[sel])
     c, nrm = shank.closest(local)
     after = float(np.sqrt(np.mean(np.einsum("ij,ij->i", local - c, nrm) ** 2)))
-    return TibiaCorrection(T_prior, T_prior @ D, np.degrees(xi[:3]), xi[3:].copy(), n, rms[0], after)
+    return TibiaCorrection(T_prior, xi, n, rms[0], after)

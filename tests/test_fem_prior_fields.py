@@ -171,16 +171,17 @@ def test_initialisation_with_a_tibia_correction_and_links_at_rest_there(voluntee
     import math
 
     from models.fem.prior_case import bone_cell_nodes, initialise_from_prior, link_springs
-    from models.prior import _small_pose
+    from models.prior import small_pose
     from toolkit.conventions import invert_poses, joint_to_pose, transform_points
 
     model = build_association_model(volunteer)
     alpha = math.radians(60.0)
     T_prior = joint_to_pose(volunteer.motion_at(np.array([alpha]))[0][0])
     T0 = joint_to_pose(volunteer.motion_at(np.array([0.0]))[0][0])
-    D = _small_pose(np.array([0.02, 0.0, -0.03, 1.0, -1.0, 1.5]))
+    xi = np.array([0.02, 0.0, -0.03, 1.0, -1.0, 1.5])
+    D = small_pose(xi)
     X = model.grid.X.copy()
-    initialise_from_prior(model, volunteer, alpha, correction=D)
+    initialise_from_prior(model, volunteer, alpha, correction_xi=xi)
     _, mt = bone_cell_nodes(model)
     np.testing.assert_allclose(model.solver.x[mt], transform_points(T_prior @ D @ invert_poses(T0), X[mt]), atol=1e-5)
     links = link_springs(model, volunteer, T_tibia=T_prior @ D)

@@ -117,19 +117,19 @@ def test_the_tibia_correction_recovers_what_the_shank_shows(volunteer):
     """Shank points from a tibia moved off the mechanism's path: with a weak prior the correction finds the
     move (the rotations across the shank and the translation); the rotation about the shank's own axis,
     which the points cannot show, stays the prior's."""
-    from models.prior import _small_pose, correct_tibia
+    from models.prior import correct_tibia, small_pose
 
     ph = build_phantom(volunteer.params)
     alpha = math.radians(60.0)
     xi = np.array([0.03, 0.0, -0.025, 1.5, -1.0, 2.0])  # rad about x, y, z (tibia frame); mm
-    pts = _shank_points(volunteer, ph, alpha, _small_pose(xi))
+    pts = _shank_points(volunteer, ph, alpha, small_pose(xi))
     c = correct_tibia(volunteer, ph, pts, alpha, sigma_mm=100.0, sigma_deg=90.0)
     assert c.applied and c.points > 500
     np.testing.assert_allclose(c.rotation_deg, np.degrees(xi[:3]), atol=0.1)
     np.testing.assert_allclose(c.translation_mm, xi[3:], atol=0.15)
     assert c.rms_after < 0.5 < c.rms_before
     # an added axial rotation moves no point of the capsule about that axis: the same correction, axial zero
-    twisted = _shank_points(volunteer, ph, alpha, _small_pose(xi) @ _small_pose(np.array([0, 0.1, 0, 0, 0, 0])))
+    twisted = _shank_points(volunteer, ph, alpha, small_pose(xi) @ small_pose(np.array([0, 0.1, 0, 0, 0, 0])))
     c2 = correct_tibia(volunteer, ph, twisted, alpha, sigma_mm=100.0, sigma_deg=90.0)
     assert c2.rotation_deg[1] == 0.0
     np.testing.assert_allclose(c2.rotation_deg, c.rotation_deg, atol=0.1)
@@ -148,5 +148,5 @@ def test_no_tibia_correction_without_shank_points(volunteer):
     thigh, _ = sample_surface(ph.skin_parts(np.eye(4))[0][0], 3000, seed=0)
     alpha = math.radians(60.0)
     c = correct_tibia(volunteer, ph, thigh[thigh[:, 1] > 60.0], alpha)
-    assert not c.applied and "prior's pose is kept" in c.describe()
+    assert not c.applied and "prior's pose is kept" in c.note
     np.testing.assert_array_equal(c.T, c.T_prior)

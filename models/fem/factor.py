@@ -19,6 +19,8 @@ try:  # optional: a supernodal Cholesky; SuperLU otherwise
     import cvxopt.cholmod as _cholmod
 except ImportError:  # pragma: no cover - depends on the installation
     cvxopt = _cholmod = None
+else:
+    _cholmod.options["supernodal"] = 2  # always supernodal (BLAS-3 kernels)
 
 #: The factorisations tried in order; "cholmod" is skipped when cvxopt is missing.
 BACKENDS = ("cholmod", "superlu")
@@ -55,7 +57,6 @@ class SparseFactor:
         cols = np.repeat(np.arange(low.shape[1], dtype=np.int64), np.diff(low.indptr))
         S = cvxopt.spmatrix(cvxopt.matrix(low.data.astype(float)), cvxopt.matrix(low.indices.astype(np.int64)),
                             cvxopt.matrix(cols), size=low.shape)
-        _cholmod.options["supernodal"] = 2  # always supernodal (BLAS-3 kernels)
         F = _cholmod.symbolic(S)
         _cholmod.numeric(S, F)
         self._F = F

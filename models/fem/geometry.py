@@ -33,8 +33,7 @@ class SurfaceQuery:
 
     def closest_points(self, points) -> np.ndarray:
         """(P, 3) -> (P, 3) closest points on the surface."""
-        p = o3d.core.Tensor(np.asarray(points, np.float32).reshape(-1, 3))
-        return self.scene.compute_closest_points(p)["points"].numpy().astype(float)
+        return self.closest(points)[0]
 
     def closest(self, points) -> tuple[np.ndarray, np.ndarray]:
         """(P, 3) -> closest points on the surface (P, 3) and the normals of their triangles (P, 3)."""

@@ -37,7 +37,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from models.fem.case import (bone_phase_note, case_points, check_state, default_camera, register_to_model,
                              run_standard_case, target_errors, truth_targets)
@@ -47,7 +46,7 @@ from models.fem.forces import SurfaceForces
 from models.fem.mapping import TrilinearMapping
 from models.fem.scene import AssociationModel, bone_cell_masks, build_association_model, knee_angles
 from models.mechanism.solver import Mechanism
-from models.prior import TibiaCorrection, _small_pose, correct_tibia, estimate_flexion
+from models.prior import TibiaCorrection, correct_tibia, estimate_flexion, small_pose
 from toolkit.conventions import invert_poses, joint_to_pose, transform_points
 from toolkit.errors import KneeInputError
 
@@ -74,12 +73,13 @@ def bone_cell_nodes(model: AssociationModel):
 
 
 def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: float, increments: int = 4,
-                          settle: int = 1, correction: np.ndarray | None = None) -> int:
+                          settle: int = 1, correction_xi: np.ndarray | None = None) -> int:
     """Move the tibia along the prior's path from extension to ``alpha`` (rad) with the bone cells'
     nodes prescribed (femur's held at rest), solving the grid's static equilibrium at each increment
     (quasi-static steps, see :func:`quasi_static`), and make that configuration the model's stress-free
-    reference; returns the steps taken. ``correction`` (4, 4): a pose correction of the tibia in its own
-    frame at ``alpha`` (:func:`models.prior.correct_tibia`), blended in along the increments."""
+    reference; returns the steps taken. ``correction_xi`` (6,): a pose correction of the tibia in its own
+    frame at ``alpha``, rotation vector (rad) and translation (mm) (:class:`models.prior.TibiaCorrection`),
+    blended in along the increments."""
     s = model.solver
     mf, mt = bone_cell_nodes(model)
     mask = mf | mt
@@ -87,9 +87,8 @@ def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: floa
     T0 = joint_to_pose(prior.motion_at(np.array([0.0]))[0][0])
     fractions = np.arange(1, increments + 1) / increments
     poses = joint_to_pose(prior.motion_at(alpha * fractions)[0])
-    if correction is not None:
-        xi = np.concatenate([Rotation.from_matrix(correction[:3, :3]).as_rotvec(), correction[:3, 3]])
-        poses = poses @ np.stack([_small_pose(f * xi) for f in fractions])
+    if correction_xi is not None:
+        poses = poses @ np.stack([small_pose(f * np.asarray(correction_xi, float)) for f in fractions])
     poses = poses @ invert_poses(T0)
     steps = 0
     target = X.copy()
@@ -291,7 +290,7 @@ def run_method(method: str, truth: Mechanism, prior: Mechanism, flexion_deg: flo
 def _fem_phases(method, model, prior, est, corr, pts_model, T_world, truth_tf, flexion_deg, max_steps, notes, t0):
     """Methods (ii) and (iii) after the registration: initialisation, surface phase, evaluation."""
     s = model.solver
-    steps = initialise_from_prior(model, prior, est.flexion, correction=invert_poses(corr.T_prior) @ corr.T)
+    steps = initialise_from_prior(model, prior, est.flexion, correction_xi=corr.xi)
     surf = SurfaceForces(model.grid, model.skin_vertices, pts_model, k=2.0)
     s.fields.append(surf)
     links = None
