@@ -69,3 +69,49 @@ class SparseFactor:
         _cholmod.solve(self._F, B)
         out = np.array(B)
         return out.ravel() if b.ndim == 1 else out
+
+
+class Refactorizer:
+    """Factorisations of a sequence of matrices given by their lower triangles on patterns identified by a
+    version number (:class:`models.fem.system.SystemAssembler`): while the version stays the same, CHOLMOD's
+    sparse matrix is only given new values and its symbolic analysis (ordering, supernodes) is reused, so
+    a refresh costs the numeric factorisation alone.
+
+    CHOLMOD refactorises in place: a factor returned by :meth:`factor` is valid until the next call. A
+    matrix CHOLMOD refuses (not positive definite) is factorised by SuperLU, and the kept analysis dropped.
+    """
+
+    def __init__(self, prefer: str = "cholmod"):
+        if prefer not in BACKENDS:
+            raise ValueError(f"prefer must be one of {', '.join(BACKENDS)}, got {prefer!r}")
+        self.prefer = prefer
+        self._version = None
+        self._S = self._F = None
+        self.symbolic_analyses = 0
+
+    def factor(self, version, n: int, indptr, indices, data) -> "SparseFactor":
+        if self.prefer == "cholmod" and _cholmod is not None:
+            if version != self._version or self._S is None:
+                cols = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr))
+                self._S = cvxopt.spmatrix(cvxopt.matrix(np.asarray(data, float)),
+                                          cvxopt.matrix(np.asarray(indices, np.int64)), cvxopt.matrix(cols),
+                                          size=(n, n))
+                self._F = _cholmod.symbolic(self._S)
+                self._version = version
+                self.symbolic_analyses += 1
+            else:
+                self._S.V = cvxopt.matrix(np.asarray(data, float))
+            try:
+                _cholmod.numeric(self._S, self._F)
+                f = SparseFactor.__new__(SparseFactor)
+                f.n, f.backend, f._F = n, "cholmod", self._F
+                return f
+            except ArithmeticError:  # not positive definite: LU below, and a fresh analysis next time
+                self._version = self._S = self._F = None
+        return SparseFactor(symmetric_from_lower(n, indptr, indices, data), prefer="superlu")
+
+
+def symmetric_from_lower(n: int, indptr, indices, data) -> sp.csc_matrix:
+    """The whole symmetric (n, n) matrix from its lower triangle in compressed columns."""
+    L = sp.csc_matrix((np.asarray(data, float), indices, indptr), shape=(n, n))
+    return (L + sp.triu(L.T, k=1)).tocsc()

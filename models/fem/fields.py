@@ -162,6 +162,9 @@ class MappedPenaltyContact:
 
     def __init__(self, grid, points_a, points_b, k=50.0, distance=10.0):
         self.ma, self.mb = TrilinearMapping(grid, points_a), TrilinearMapping(grid, points_b)
+        self._grid_cells = grid.cells
+        xc = grid.X[grid.cells]
+        self._cell_boxes = (xc.min(axis=1), xc.max(axis=1))
         self.k, self.distance = float(k), float(distance)
         # activation distance per point of A: 10 mm, or its rest distance to B if closer (bones that
         # touch at rest are force-free at rest)
@@ -188,6 +191,23 @@ class MappedPenaltyContact:
         np.add.at(fa, i, mag[:, None] * nrm)
         np.add.at(fb, j, -mag[:, None] * nrm)
         return self.ma.apply_transpose(fa) + self.mb.apply_transpose(fb)
+
+    def pattern_reserve(self, margin: float = 0.0) -> sp.csr_matrix:
+        """The grid-node couplings this field may bring into the solver's matrix: every node of a cell
+        holding points of A with every node of a cell holding points of B, for the cell pairs whose rest
+        boxes are within the activation distance plus ``margin`` (mm) of each other along every axis, so
+        that pairs switching on and off rarely change the matrix's pattern (:mod:`models.fem.system`).
+        Values are placeholders; only the pattern counts."""
+        ca, cb = np.unique(self.ma.cell), np.unique(self.mb.cell)
+        lo, hi = self._cell_boxes
+        gap = np.maximum(lo[ca][:, None, :] - hi[cb][None, :, :], lo[cb][None, :, :] - hi[ca][:, None, :])
+        ia, ib = np.nonzero(np.all(gap <= self.distance + margin, axis=2))
+        na, nb = self._grid_cells[ca[ia]], self._grid_cells[cb[ib]]  # (pairs, 8) node ids
+        r = np.repeat(na, 8, axis=1).ravel()
+        c = np.tile(nb, (1, 8)).ravel()
+        n = self.ma.J.shape[1]
+        nodes = sp.csr_matrix((np.ones(r.size), (r, c)), shape=(n, n))
+        return sp.kron(nodes + nodes.T, np.ones((3, 3)), format="csr")
 
     def rebase(self, x, pa=None, pb=None) -> None:
         """Take the activation distances from grid positions ``x`` (or the points ``pa``, ``pb`` directly):

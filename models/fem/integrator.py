@@ -29,9 +29,9 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 
-from models.fem.factor import SparseFactor
+from models.fem.factor import Refactorizer
+from models.fem.system import SystemAssembler
 
 
 @dataclass
@@ -85,6 +85,8 @@ class ImplicitEuler:
         self._t_factor = None         # measured seconds of the last refresh (assembly + factorisation)
         self._lu = None
         self._woodbury = None
+        self._system = None    # the matrix's kept lower-triangle pattern (models.fem.system)
+        self._refactor = None  # CHOLMOD's analysis kept while that pattern stays
         self._best_iterations = None  # CG iterations of the first step after the last refresh
         self._excess = 0.0            # iterations spent beyond that since the last refresh
         # node_rotations() -> (N, 3, 3) rotations of the material around each node (for the warped
@@ -131,11 +133,16 @@ class ImplicitEuler:
 
     def _refresh(self):
         t0 = time.perf_counter()
-        K = sum((f.matrix() for f in self.fields), sp.csr_matrix((3 * len(self.m),) * 2))
-        A = (sp.diags(np.repeat(self._cm * self.m, 3)) + self._ck * K).tocsr()
-        P = sp.diags(self._free)
-        A = (P @ A @ P + sp.diags(1 - self._free)).tocsc()
-        self._lu = SparseFactor(A, prefer=self.factor_backend)
+        n3 = 3 * len(self.m)
+        if self._system is None or self._system.n != n3:
+            self._system = SystemAssembler(n3, reserve=[r for r in (getattr(f, "pattern_reserve", lambda: None)()
+                                                                    for f in self.fields) if r is not None])
+        if self._refactor is None or self._refactor.prefer != self.factor_backend:
+            self._refactor = Refactorizer(self.factor_backend)
+        sysm = self._system
+        indptr, indices, data = sysm.assemble(np.repeat(self._cm * self.m, 3), [f.matrix() for f in self.fields],
+                                              self._ck, self._free)
+        self._lu = self._refactor.factor(sysm.version, n3, indptr, indices, data)
         # low-rank fields (springs between wide bone attachments) by the Woodbury identity:
         # (A + c U U^T)^-1 = A^-1 - Z (I/c + U^T Z)^-1 Z^T, Z = A^-1 U
         Us = [u for u in (getattr(f, "low_rank_factor", lambda: None)() for f in self.fields) if u is not None]

@@ -1,0 +1,116 @@
+"""The implicit solver's matrix, assembled for its factorisation on a sparsity pattern kept across refreshes.
+
+The matrix ``diag(m) + c K`` (K: the fields' stiffnesses summed; the rows and columns of held DOFs replaced
+by identity) is symmetric, and the Cholesky factorisation reads only its lower triangle in compressed
+columns. :class:`SystemAssembler` keeps that triangle's pattern (a sorted array of ``col * n + row`` keys)
+and, per field, where its matrix's entries land in it; a refresh then only scatters the fields' values
+(``data[pos] += values``) instead of summing sparse matrices, projecting, transposing and converting. The
+pattern is rebuilt when a field brings entries it does not hold (contact pairs that were never active
+before); it keeps the entries it had, so pairs that come and go do not change it each time, until it has
+grown to ``slack`` times its size when last built from scratch. A field can reserve entries up front
+(``pattern_reserve()``: the contact's possible pairs), which the pattern always holds. Its ``version`` changes with it, which tells the
+factorisation when the symbolic analysis must be redone (:class:`models.fem.factor.Refactorizer`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+
+def _lower_keys(M: sp.csr_matrix, n: int):
+    """Keys ``col * n + row`` of the lower-triangle entries of a CSR matrix, and which entries they are."""
+    rows = np.repeat(np.arange(M.shape[0], dtype=np.int64), np.diff(M.indptr))
+    cols = M.indices.astype(np.int64)
+    low = rows >= cols
+    return cols[low] * n + rows[low], low
+
+
+def _sorted_unique(a: np.ndarray) -> np.ndarray:
+    """Sorted distinct values (by sorting: several times faster than ``np.unique``'s hashing here)."""
+    a = np.sort(a)
+    return a[np.concatenate([[True], a[1:] != a[:-1]])] if a.size else a
+
+
+class SystemAssembler:
+    """Lower triangle (CSC) of ``diag(d) + c * sum(matrices)`` on a kept pattern (see the module docstring).
+
+    ``n``: the matrix's size (3 x nodes). ``slack``: how far the kept pattern may grow (relative to its
+    size when last built from scratch) before a rebuild drops the entries no longer used."""
+
+    def __init__(self, n: int, slack: float = 1.5, reserve=()):
+        self.n = int(n)
+        self.slack = float(slack)
+        # the diagonal, always present, and the entries fields declare they may use (pattern_reserve())
+        self._always = _sorted_unique(np.concatenate([np.arange(self.n, dtype=np.int64) * (self.n + 1)]
+                                                     + [_lower_keys(sp.csr_matrix(R), self.n)[0] for R in reserve]))
+        self.keys = self._always
+        self._base_size = self.keys.size  # the pattern's size when last rebuilt from scratch
+        self.version = 0
+        self._cache: dict[int, tuple] = {}  # slot -> (indptr, indices, lower mask, positions)
+        self._geometry()
+
+    def _geometry(self):
+        self.rows = self.keys % self.n
+        self.cols = self.keys // self.n
+        self.indices = self.rows.astype(np.int32)
+        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(self.cols, minlength=self.n))]).astype(np.int64)
+        self.diag_pos = np.searchsorted(self.keys, np.arange(self.n, dtype=np.int64) * (self.n + 1))
+
+    def _positions(self, slot: int, M: sp.csr_matrix):
+        """(lower mask, positions in the pattern, keys) of M's entries; positions None when the pattern
+        lacks some of them."""
+        c = self._cache.get(slot)
+        if c is not None and c[0].shape == M.indptr.shape and c[1].shape == M.indices.shape \
+                and np.array_equal(c[0], M.indptr) and np.array_equal(c[1], M.indices):
+            return c[2], c[3], None
+        keys, low = _lower_keys(M, self.n)
+        pos = np.searchsorted(self.keys, keys)
+        if keys.size and not np.array_equal(self.keys[np.minimum(pos, len(self.keys) - 1)], keys):
+            return low, None, keys
+        self._cache[slot] = (M.indptr.copy(), M.indices.copy(), low, pos)
+        return low, pos, None
+
+    def _grow(self, new_keys: np.ndarray) -> None:
+        """Add keys to the pattern; the cached positions shift by the number of keys inserted before them."""
+        new = _sorted_unique(new_keys)
+        new = new[~np.isin(new, self.keys, assume_unique=True)]
+        if not new.size:
+            return
+        shift = np.searchsorted(new, self.keys)  # how many new keys sort before each kept one
+        self._cache = {k: (ip, ix, low, pos + shift[pos]) for k, (ip, ix, low, pos) in self._cache.items()}
+        self.keys = np.insert(self.keys, np.searchsorted(self.keys, new), new)
+        self.version += 1
+        self._geometry()
+
+    def _rebuild(self, mats) -> None:
+        """The pattern from scratch: the diagonal, the reserved entries and what the current matrices hold."""
+        self.keys = _sorted_unique(np.concatenate([self._always] + [_lower_keys(M, self.n)[0] for M in mats]))
+        self._base_size = self.keys.size
+        self.version += 1
+        self._cache.clear()
+        self._geometry()
+
+    def assemble(self, d, matrices, c: float, free=None):
+        """``d`` (n,) diagonal, ``matrices`` list of (n, n) sparse, ``c`` their factor; ``free`` (n,) 1/0 per
+        DOF (held ones: identity row and column). Returns ``(indptr, indices, data)`` of the lower triangle
+        in compressed columns; ``version`` identifies the pattern."""
+        mats = [sp.csr_matrix(M) for M in matrices]
+        for M in mats:
+            M.sum_duplicates()
+        located = [self._positions(i, M) for i, M in enumerate(mats)]
+        missing = [keys for _, pos, keys in located if pos is None]
+        if missing:
+            self._grow(np.concatenate(missing))
+            if self.keys.size > self.slack * self._base_size:
+                self._rebuild(mats)
+            located = [self._positions(i, M) for i, M in enumerate(mats)]
+        data = np.zeros(self.keys.size)
+        data[self.diag_pos] = d
+        for M, (low, pos, _) in zip(mats, located):
+            data[pos] += c * M.data[low]  # positions are distinct within one summed matrix
+        if free is not None:
+            free = np.asarray(free, float)
+            data *= free[self.rows] * free[self.cols]
+            data[self.diag_pos] += 1.0 - free
+        return self.indptr, self.indices, data

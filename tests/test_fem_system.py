@@ -1,0 +1,87 @@
+"""The solver's matrix assembled on a kept pattern (models.fem.system) and refactorised on it
+(models.fem.factor.Refactorizer): the same matrix as summing the sparse matrices directly, whatever
+entries come and go between refreshes."""
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from models.fem.factor import Refactorizer, symmetric_from_lower
+from models.fem.system import SystemAssembler
+
+
+def _sym(n, density, seed):
+    B = sp.random(n, n, density=density, random_state=seed, format="csr")
+    return (B + B.T).tocsr()
+
+
+def _reference(d, mats, c, free):
+    A = sp.diags(d) + c * sum(mats, sp.csr_matrix((len(d), len(d))))
+    P = sp.diags(free)
+    return (P @ A @ P + sp.diags(1 - free)).toarray()
+
+
+def test_assembly_matches_the_direct_sum_as_entries_come_and_go():
+    n = 60
+    rng = np.random.default_rng(0)
+    d = rng.uniform(5, 10, n)
+    free = (rng.uniform(size=n) > 0.1).astype(float)
+    fixed_part = _sym(n, 0.05, 1)
+    sa = SystemAssembler(n)
+    versions = []
+    for step, seed in enumerate([2, 2, 3, 2, 4]):  # the second matrix's pattern changes between refreshes
+        mats = [fixed_part * (1 + step), _sym(n, 0.03, seed)]
+        indptr, indices, data = sa.assemble(d, mats, 0.3, free)
+        np.testing.assert_allclose(symmetric_from_lower(n, indptr, indices, data).toarray(),
+                                   _reference(d, mats, 0.3, free), atol=1e-12)
+        versions.append(sa.version)
+    assert versions[1] == versions[0]  # same entries: same pattern
+    assert versions[2] > versions[1]   # new entries: the pattern grew
+    assert versions[3] == versions[2]  # entries seen before are kept: no change when they return
+
+
+def test_reserved_entries_keep_the_pattern_and_an_outgrown_one_is_rebuilt():
+    n = 40
+    d = np.full(n, 3.0)
+    base = _sym(n, 0.05, 1)
+    extra = _sym(n, 0.05, 7)
+    sa = SystemAssembler(n, reserve=[extra])
+    sa.assemble(d, [base], 1.0)
+    v = sa.version
+    indptr, indices, data = sa.assemble(d, [base, extra], 1.0)  # within the reserve
+    assert sa.version == v
+    np.testing.assert_allclose(symmetric_from_lower(n, indptr, indices, data).toarray(),
+                               _reference(d, [base, extra], 1.0, np.ones(n)), atol=1e-12)
+    small = SystemAssembler(n, slack=1.05)
+    small.assemble(d, [base], 1.0)
+    size = small.keys.size
+    for seed in range(10, 16):  # patterns that keep changing: the kept one is rebuilt, not grown forever
+        small.assemble(d, [base, _sym(n, 0.05, seed)], 1.0)
+    assert small.keys.size <= 1.05 * size + _sym(n, 0.05, 15).nnz
+
+
+def test_refactorizer_reuses_the_analysis_and_solves_exactly():
+    n = 80
+    rng = np.random.default_rng(3)
+    B = sp.random(n, n, density=0.05, random_state=3)
+    sa = SystemAssembler(n)
+    rf = Refactorizer()
+    for scale in (1.0, 2.0, 0.5):
+        indptr, indices, data = sa.assemble(np.full(n, 1.0), [(B @ B.T) * scale], 1.0)
+        f = rf.factor(sa.version, n, indptr, indices, data)
+        A = symmetric_from_lower(n, indptr, indices, data)
+        b = rng.normal(size=n)
+        np.testing.assert_allclose(f.solve(b), spla.spsolve(A, b), rtol=1e-9, atol=1e-12)
+    if f.backend == "cholmod":
+        assert rf.symbolic_analyses == 1
+    # not positive definite: LU, and the next positive definite matrix is factorised afresh
+    indptr, indices, data = sa.assemble(np.full(n, -1.0), [B @ B.T], 1e-3)
+    f = rf.factor(sa.version, n, indptr, indices, data)
+    assert f.backend == "superlu"
+    A = symmetric_from_lower(n, indptr, indices, data)
+    b = rng.normal(size=n)
+    np.testing.assert_allclose(A @ f.solve(b), b, atol=1e-8)
+    indptr, indices, data = sa.assemble(np.full(n, 1.0), [B @ B.T], 1.0)
+    f = rf.factor(sa.version, n, indptr, indices, data)
+    A = symmetric_from_lower(n, indptr, indices, data)
+    np.testing.assert_allclose(A @ f.solve(b), b, atol=1e-9)
