@@ -173,12 +173,15 @@ class MappedPenaltyContact:
         self._nrm = np.zeros((0, 3))
         self._D = self._DT = None
         self.active = 0
+        self.skin = 5.0  # mm, of the candidate list (see _candidates)
+        self._cand = self._cand_ref = None
 
     def forces(self, x):
         pa, pb = self.ma.apply(x), self.mb.apply(x)
-        d, j = cKDTree(pb).query(pa, distance_upper_bound=self.distance)
-        i = np.nonzero(d < self.reach)[0]
-        j = j[i]
+        cand = self._candidates(pa, pb)
+        d, j = cKDTree(pb).query(pa[cand], distance_upper_bound=self.distance)
+        keep = d < self.reach[cand]
+        i, j = cand[keep], j[keep]
         sep = pa[i] - pb[j]
         ln = np.maximum(np.linalg.norm(sep, axis=1), 1e-9)
         nrm = sep / ln[:, None]
@@ -186,15 +189,14 @@ class MappedPenaltyContact:
         self._pairs, self._nrm, self.active = (i, j), nrm, i.size
         self._D = self._dmat() if i.size else None  # fixed for this step's solve
         self._DT = None if self._D is None else self._D.T.tocsr()
-        fa = np.zeros_like(pa)
-        fb = np.zeros_like(pb)
-        np.add.at(fa, i, mag[:, None] * nrm)
-        np.add.at(fb, j, -mag[:, None] * nrm)
-        return self.ma.apply_transpose(fa) + self.mb.apply_transpose(fb)
+        if self._D is None:
+            return np.zeros_like(x)
+        return self._DT @ (mag[:, None] * nrm)  # +f on the A point, -f on the B point
 
     def pattern_reserve(self, margin: float = 0.0) -> sp.csr_matrix:
         """The grid-node couplings this field may bring into the solver's matrix: every node of a cell
-        holding points of A with every node of a cell holding points of B, for the cell pairs whose rest
+        holding points of A with every node of a cell holding points of B (and with each other), for the
+        cell pairs whose rest
         boxes are within the activation distance plus ``margin`` (mm) of each other along every axis, so
         that pairs switching on and off rarely change the matrix's pattern (:mod:`models.fem.system`).
         Values are placeholders; only the pattern counts."""
@@ -202,12 +204,12 @@ class MappedPenaltyContact:
         lo, hi = self._cell_boxes
         gap = np.maximum(lo[ca][:, None, :] - hi[cb][None, :, :], lo[cb][None, :, :] - hi[ca][:, None, :])
         ia, ib = np.nonzero(np.all(gap <= self.distance + margin, axis=2))
-        na, nb = self._grid_cells[ca[ia]], self._grid_cells[cb[ib]]  # (pairs, 8) node ids
-        r = np.repeat(na, 8, axis=1).ravel()
-        c = np.tile(nb, (1, 8)).ravel()
+        nodes = np.concatenate([self._grid_cells[ca[ia]], self._grid_cells[cb[ib]]], axis=1)  # (pairs, 16)
+        r = np.repeat(nodes, 16, axis=1).ravel()
+        c = np.tile(nodes, (1, 16)).ravel()
         n = self.ma.J.shape[1]
-        nodes = sp.csr_matrix((np.ones(r.size), (r, c)), shape=(n, n))
-        return sp.kron(nodes + nodes.T, np.ones((3, 3)), format="csr")
+        coupled = sp.csr_matrix((np.ones(r.size), (r, c)), shape=(n, n))
+        return sp.kron(coupled, np.ones((3, 3)), format="csr")
 
     def rebase(self, x, pa=None, pb=None) -> None:
         """Take the activation distances from grid positions ``x`` (or the points ``pa``, ``pb`` directly):
@@ -217,11 +219,33 @@ class MappedPenaltyContact:
         d0, _ = cKDTree(pb).query(pa)
         self.reach = np.minimum(self.distance, d0)
 
+    def _candidates(self, pa, pb):
+        """A's points that can be within ``distance`` of B: those within ``distance + skin`` of it when the
+        list was made, valid while A's and B's points together have moved less than ``skin`` since (a
+        Verlet list: most of A's points are far from B and skip the nearest-neighbour query)."""
+        ref = self._cand_ref
+        if ref is not None and ref[0].shape == pa.shape and ref[1].shape == pb.shape:
+            moved = np.sqrt(((pa - ref[0]) ** 2).sum(axis=1).max()) + np.sqrt(((pb - ref[1]) ** 2).sum(axis=1).max())
+            if moved < self.skin:
+                return self._cand
+        reach = self.distance + self.skin
+        lo, hi = pb.min(axis=0) - reach, pb.max(axis=0) + reach
+        box = np.nonzero(np.all((pa >= lo) & (pa <= hi), axis=1))[0]
+        d, _ = cKDTree(pb).query(pa[box], distance_upper_bound=reach)
+        self._cand = box[np.isfinite(d)]
+        self._cand_ref = (pa.copy(), pb.copy())
+        return self._cand
+
     def _dmat(self):
+        """(pairs, N) sparse: grid weights of each pair's A point minus those of its B point."""
         i, j = self._pairs
-        Ja = self.ma.J[i]
-        Jb = self.mb.J[j]
-        return (Ja - Jb).tocsr()
+        wa, wb = self.ma.weights[i], -self.mb.weights[j]  # (S, 8) each
+        cols = np.concatenate([self.ma.nodes[i], self.mb.nodes[j]], axis=1)
+        n = self.ma.J.shape[1]
+        D = sp.csr_matrix((np.concatenate([wa, wb], axis=1).ravel(), cols.ravel(),
+                           np.arange(0, 16 * len(i) + 1, 16)), shape=(len(i), n))
+        D.sum_duplicates()
+        return D
 
     def apply(self, p):
         if self._D is None:
@@ -231,13 +255,16 @@ class MappedPenaltyContact:
         return self._DT @ g
 
     def matrix(self):
-        i, _ = self._pairs
         n3 = 3 * self.ma.J.shape[1]
-        if i.size == 0:
+        if self._D is None:
             return sp.csr_matrix((n3, n3))
-        D3 = sp.kron(self._dmat(), sp.identity(3), format="csr")
-        nn = self.k * self._nrm[:, :, None] * self._nrm[:, None, :]
-        return (D3.T @ sp.block_diag(list(nn), format="csr") @ D3).tocsr()
+        # k D^T (n n^T) D per pair, as (D kron I3)^T blocks (D kron I3) without forming the block matrix:
+        # rows of G = n_s^T (D_s kron I3), then k G^T G
+        D = self._D.tocoo()
+        nr = self._nrm[D.row]  # (nnz, 3)
+        G = sp.csr_matrix(((D.data[:, None] * nr).ravel(), (np.repeat(D.row, 3), (3 * D.col[:, None] + np.arange(3)).ravel())),
+                          shape=(D.shape[0], n3))
+        return (self.k * (G.T @ G)).tocsr()
 
 
 class MatrixMapping:

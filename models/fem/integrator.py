@@ -38,7 +38,7 @@ from models.fem.system import SystemAssembler
 class StepInfo:
     iterations: int
     refreshed: bool
-    residual: float
+    residual: float  # CG's final residual (its recurrence) relative to the right-hand side
 
 
 class ImplicitEuler:
@@ -227,7 +227,7 @@ class ImplicitEuler:
             refreshed = True
             t0, its_timed = time.perf_counter(), its
         self._time_iterations(time.perf_counter() - t0, its - its_timed)
-        return x, its, refreshed, its - its_timed
+        return x, its, refreshed, its - its_timed, rn / max(float(np.linalg.norm(rhs)), 1e-300)
 
     def _refresh_cost_iterations(self) -> float:
         """What a refactorisation costs, in CG iterations: measured (its time over an iteration's) once both
@@ -282,7 +282,7 @@ class ImplicitEuler:
         if self._lu is None:
             self._refresh()
             refreshed = True
-        v, its, refreshed, its_fresh = self._pcg(rhs, self.v.ravel(), refreshed)
+        v, its, refreshed, its_fresh, res = self._pcg(rhs, self.v.ravel(), refreshed)
         if not refreshed:
             if self._best_iterations is None:
                 self._best_iterations = its
@@ -296,6 +296,5 @@ class ImplicitEuler:
         self.x = x + self.dt * self.v
         self.time += self.dt
         self.steps += 1
-        res = float(np.linalg.norm(self._operator(v.reshape(-1, 3)).ravel() - rhs) / max(np.linalg.norm(rhs), 1e-300))
         self.last_info = StepInfo(iterations=its, refreshed=refreshed, residual=res)
         return self.last_info
