@@ -35,6 +35,11 @@ def test_assembly_matches_the_direct_sum_as_entries_come_and_go():
         np.testing.assert_allclose(symmetric_from_lower(n, indptr, indices, data).toarray(),
                                    _reference(d, mats, 0.3, free), atol=1e-12)
         versions.append(sa.version)
+        held = np.nonzero(free == 0)[0]
+        cols = np.repeat(np.arange(n), np.diff(indptr))
+        # held DOFs are out of the pattern (not only zeroed): their columns and rows hold the diagonal alone
+        assert np.all(np.isin(indices[np.isin(cols, held)], held) & (indices[np.isin(cols, held)] == cols[np.isin(cols, held)]))
+        assert not np.any(np.isin(indices, held) & (indices != cols))
     assert versions[1] == versions[0]  # same entries: same pattern
     assert versions[2] > versions[1]   # new entries: the pattern grew
     assert versions[3] == versions[2]  # entries seen before are kept: no change when they return

@@ -134,12 +134,19 @@ def hex_stiffness(X: np.ndarray, cells: np.ndarray, D: np.ndarray) -> np.ndarray
     return (np.swapaxes(B, 2, 3) @ DB).sum(axis=1)
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross products of (E, 3) arrays (np.cross without its axis handling)."""
+    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
+    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=1)
+
+
 def _frames(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Orthonormal frames (E, 3, 3), columns (x, y, z), from directions a and b by Gram-Schmidt."""
-    x = a / np.linalg.norm(a, axis=1, keepdims=True)
-    z = np.cross(x, b)
-    z /= np.linalg.norm(z, axis=1, keepdims=True)
-    y = np.cross(z, x)
+    x = a / np.sqrt(np.einsum("ij,ij->i", a, a))[:, None]
+    z = _cross(x, b)
+    z /= np.sqrt(np.einsum("ij,ij->i", z, z))[:, None]
+    y = _cross(z, x)
     return np.stack([x, y, z], axis=2)
 
 
@@ -148,11 +155,17 @@ def tet_frames(xe: np.ndarray) -> np.ndarray:
     return _frames(xe[:, 1] - xe[:, 0], xe[:, 2] - xe[:, 0])
 
 
+# the mean edge vectors along the first and second local directions as combinations of the 8 nodes
+_HEX_MEAN_EDGES = np.zeros((2, 8))
+for _row, _edges in enumerate((_HEX_EDGES_1, _HEX_EDGES_2)):
+    np.add.at(_HEX_MEAN_EDGES[_row], _edges[:, 1], 0.25)
+    np.add.at(_HEX_MEAN_EDGES[_row], _edges[:, 0], -0.25)
+
+
 def hex_frames(xe: np.ndarray) -> np.ndarray:
     """Mean-edge frames of hexahedra (E, 8, 3) -> (E, 3, 3)."""
-    e1 = (xe[:, _HEX_EDGES_1[:, 1]] - xe[:, _HEX_EDGES_1[:, 0]]).mean(axis=1)
-    e2 = (xe[:, _HEX_EDGES_2[:, 1]] - xe[:, _HEX_EDGES_2[:, 0]]).mean(axis=1)
-    return _frames(e1, e2)
+    e = _HEX_MEAN_EDGES @ xe  # (E, 2, 3)
+    return _frames(e[:, 0], e[:, 1])
 
 
 class CorotationalElements:
@@ -224,9 +237,12 @@ class CorotationalElements:
         self.R = np.broadcast_to(np.eye(3), (len(self.cells), 3, 3)).copy()
         return int((~ok).sum())
 
-    def update_rotations(self, x: np.ndarray) -> np.ndarray:
-        """Element rotations (E, 3, 3) from current positions ``x`` (N, 3); stored in ``self.R``."""
-        self.R = self._frames(np.asarray(x, float)[self.cells]) @ np.swapaxes(self._F0, 1, 2)
+    def update_rotations(self, x: np.ndarray, xe: np.ndarray | None = None) -> np.ndarray:
+        """Element rotations (E, 3, 3) from current positions ``x`` (N, 3) (or their per-element gather
+        ``xe``); stored in ``self.R``."""
+        if xe is None:
+            xe = np.asarray(x, float)[self.cells]
+        self.R = self._frames(xe) @ np.swapaxes(self._F0, 1, 2)
         return self.R
 
     def element_forces(self, x: np.ndarray, corotational: bool = True) -> np.ndarray:
@@ -238,7 +254,7 @@ class CorotationalElements:
         Xe = self.Xe
         E, n = self.cells.shape
         if corotational:
-            R = self.update_rotations(x)
+            R = self.update_rotations(x, xe)
             u = xe @ R - Xe  # rows: (R^T x_a)^T - X_a
             f = (self.K @ u.reshape(E, 3 * n, 1)).reshape(E, n, 3)
             return -(f @ np.swapaxes(R, 1, 2))

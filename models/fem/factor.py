@@ -10,6 +10,8 @@ matrix is not numerically positive definite (CHOLMOD refuses it).
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
@@ -88,10 +90,13 @@ class Refactorizer:
         self._version = None
         self._S = self._F = None
         self.symbolic_analyses = 0
+        self.analysis_seconds = 0.0  # time the last factor() spent on a new pattern's analysis
 
     def factor(self, version, n: int, indptr, indices, data) -> "SparseFactor":
         if self.prefer == "cholmod" and _cholmod is not None:
+            self.analysis_seconds = 0.0
             if version != self._version or self._S is None:
+                t0 = time.perf_counter()
                 cols = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr))
                 self._S = cvxopt.spmatrix(cvxopt.matrix(np.asarray(data, float)),
                                           cvxopt.matrix(np.asarray(indices, np.int64)), cvxopt.matrix(cols),
@@ -99,6 +104,7 @@ class Refactorizer:
                 self._F = _cholmod.symbolic(self._S)
                 self._version = version
                 self.symbolic_analyses += 1
+                self.analysis_seconds = time.perf_counter() - t0
             else:
                 self._S.V = cvxopt.matrix(np.asarray(data, float))
             try:

@@ -14,6 +14,8 @@ factorisation when the symbolic analysis must be redone (:class:`models.fem.fact
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -46,7 +48,10 @@ class SystemAssembler:
                                                      + [_lower_keys(sp.csr_matrix(R), self.n)[0] for R in reserve]))
         self.keys = self._always
         self._base_size = self.keys.size  # the pattern's size when last rebuilt from scratch
-        self.version = 0
+        self.version = 0  # of the returned pattern (the kept one less the held DOFs' rows and columns)
+        self._pattern_version = 0
+        self._held_key = None
+        self.pattern_seconds = 0.0  # time the last assemble() spent changing the pattern (one-off work)
         self._cache: dict[int, tuple] = {}  # slot -> (indptr, indices, lower mask, positions)
         self._geometry()
 
@@ -80,24 +85,25 @@ class SystemAssembler:
         shift = np.searchsorted(new, self.keys)  # how many new keys sort before each kept one
         self._cache = {k: (ip, ix, low, pos + shift[pos]) for k, (ip, ix, low, pos) in self._cache.items()}
         self.keys = np.insert(self.keys, np.searchsorted(self.keys, new), new)
-        self.version += 1
+        self._pattern_version += 1
         self._geometry()
 
     def _rebuild(self, mats) -> None:
         """The pattern from scratch: the diagonal, the reserved entries and what the current matrices hold."""
         self.keys = _sorted_unique(np.concatenate([self._always] + [_lower_keys(M, self.n)[0] for M in mats]))
         self._base_size = self.keys.size
-        self.version += 1
+        self._pattern_version += 1
         self._cache.clear()
         self._geometry()
 
     def assemble(self, d, matrices, c: float, free=None):
         """``d`` (n,) diagonal, ``matrices`` list of (n, n) sparse, ``c`` their factor; ``free`` (n,) 1/0 per
         DOF (held ones: identity row and column). Returns ``(indptr, indices, data)`` of the lower triangle
-        in compressed columns; ``version`` identifies the pattern."""
+        in compressed columns; ``version`` identifies its pattern."""
         mats = [sp.csr_matrix(M) for M in matrices]
         for M in mats:
             M.sum_duplicates()
+        t0 = time.perf_counter()
         located = [self._positions(i, M) for i, M in enumerate(mats)]
         missing = [keys for _, pos, keys in located if pos is None]
         if missing:
@@ -105,12 +111,28 @@ class SystemAssembler:
             if self.keys.size > self.slack * self._base_size:
                 self._rebuild(mats)
             located = [self._positions(i, M) for i, M in enumerate(mats)]
+        self.pattern_seconds = time.perf_counter() - t0 if missing else 0.0
         data = np.zeros(self.keys.size)
         data[self.diag_pos] = d
         for M, (low, pos, _) in zip(mats, located):
             data[pos] += c * M.data[low]  # positions are distinct within one summed matrix
-        if free is not None:
-            free = np.asarray(free, float)
-            data *= free[self.rows] * free[self.cols]
-            data[self.diag_pos] += 1.0 - free
-        return self.indptr, self.indices, data
+        if free is None:
+            free = np.ones(self.n)
+        return self._held_out(np.asarray(free, float), data)
+
+    def _held_out(self, free, data):
+        """The held DOFs' rows and columns taken out of the pattern (not merely zeroed: CHOLMOD's ordering
+        would still see them as couplings), their diagonal set to 1."""
+        key = (self._pattern_version, free.tobytes())
+        if key != self._held_key:
+            keep = (free[self.rows] * free[self.cols] > 0) | (self.rows == self.cols)
+            self._keep = np.nonzero(keep)[0]
+            cols = self.cols[self._keep]
+            self._out = (np.concatenate([[0], np.cumsum(np.bincount(cols, minlength=self.n))]).astype(np.int64),
+                         self.indices[self._keep])
+            self._out_diag = np.searchsorted(self._keep, self.diag_pos)
+            self._held_key = key
+            self.version += 1
+        out = data[self._keep]
+        out[self._out_diag] = np.where(free > 0, out[self._out_diag], 1.0)
+        return self._out[0], self._out[1], out
