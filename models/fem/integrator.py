@@ -9,8 +9,9 @@ stiffnesses directly (gather, element products, scatter), warm-started from the 
 preconditioned with a sparse factorisation of the assembled matrix (:mod:`models.fem.factor`: a supernodal
 Cholesky, CHOLMOD, when available, else SuperLU's LU in symmetric mode; single-precision factors were tried and
 cost more iterations after the prior's initialisation than they saved), warped by the nodes' rotations since
-it was computed. The factorisation is kept across steps and refreshed (assembled on the fixed pattern,
-refactorised) by an amortised rule: when the iterations spent beyond the count right after the last refresh
+it was computed. The factorisation is kept across steps and refreshed (the fields' matrices scattered
+onto a lower-triangle pattern kept across refreshes, :mod:`models.fem.system`, and refactorised with the
+symbolic analysis reused while that pattern stays) by an amortised rule: when the iterations spent beyond the count right after the last refresh
 add up to more than the cost of a refactorisation (in iterations: measured, its time over an iteration's,
 or a fixed ``refresh_cost``); and at once, in the middle of
 a step, when CG has not converged within ``restart_iterations``, or earlier when the rate at which the
