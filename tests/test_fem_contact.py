@@ -16,6 +16,13 @@ def _grid(n=(6, 6, 4), size=(60.0, 60.0, 40.0)):
     return SparseGrid(X, cells, np.ones(len(cells)), np.zeros(len(cells), int), axes, ijk)
 
 
+def _contact(g, rng, a_spec, b_spec):
+    """Contact between two random point layers, (count, z_low, z_high) each, over the grid's x-y extent."""
+    a, b = (np.column_stack([rng.uniform(5, 55, n), rng.uniform(5, 55, n), rng.uniform(lo, hi, n)])
+            for n, lo, hi in (a_spec, b_spec))
+    return MappedPenaltyContact(g, a, b, k=50.0, distance=10.0)
+
+
 def _brute(c, x):
     pa, pb = c.ma.apply(x), c.mb.apply(x)
     D = np.linalg.norm(pa[:, None, :] - pb[None, :, :], axis=2)
@@ -34,9 +41,7 @@ def _brute(c, x):
 def test_contact_forces_match_brute_force_over_moves():
     g = _grid()
     rng = np.random.default_rng(0)
-    a = np.column_stack([rng.uniform(5, 55, 300), rng.uniform(5, 55, 300), rng.uniform(2, 18, 300)])
-    b = np.column_stack([rng.uniform(5, 55, 200), rng.uniform(5, 55, 200), rng.uniform(24, 38, 200)])
-    c = MappedPenaltyContact(g, a, b, k=50.0, distance=10.0)
+    c = _contact(g, rng, (300, 2, 18), (200, 24, 38))
     x = g.X.copy()
     upper = g.X[:, 2] > 20.0
     total_active = 0
@@ -55,9 +60,7 @@ def test_contact_forces_match_brute_force_over_moves():
 def test_contact_tangent_matrix_matches_its_product_and_lies_in_the_reserve():
     g = _grid()
     rng = np.random.default_rng(1)
-    a = np.column_stack([rng.uniform(5, 55, 200), rng.uniform(5, 55, 200), rng.uniform(12, 19, 200)])
-    b = np.column_stack([rng.uniform(5, 55, 200), rng.uniform(5, 55, 200), rng.uniform(21, 28, 200)])
-    c = MappedPenaltyContact(g, a, b, k=50.0, distance=10.0)
+    c = _contact(g, rng, (200, 12, 19), (200, 21, 28))
     x = g.X.copy()
     x[g.X[:, 2] > 20.0, 2] -= 2.0
     c.forces(x)

@@ -3,6 +3,7 @@
 entries come and go between refreshes."""
 
 import numpy as np
+import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
@@ -90,3 +91,8 @@ def test_refactorizer_reuses_the_analysis_and_solves_exactly():
     f = rf.factor(sa.version, n, indptr, indices, data)
     A = symmetric_from_lower(n, indptr, indices, data)
     np.testing.assert_allclose(A @ f.solve(b), b, atol=1e-9)
+
+
+def test_refactorizer_refuses_an_unknown_backend():
+    with pytest.raises(ValueError, match="prefer must be one of"):
+        Refactorizer("magic")

@@ -96,10 +96,17 @@ def _hex_jacobians(Xe: np.ndarray):
     return dxi, T.reshape(len(Xe), 3, 8, 3).transpose(0, 2, 3, 1)
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross products along the last axis of (..., 3) arrays (np.cross without its axis handling)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def det3(J: np.ndarray) -> np.ndarray:
     """Determinants of stacked 3x3 matrices (..., 3, 3) (rows a, b, c: a . (b x c)); a closed form, much
     cheaper than an LU per matrix for many small ones."""
-    return np.einsum("...i,...i->...", J[..., 0, :], np.cross(J[..., 1, :], J[..., 2, :]))
+    return np.einsum("...i,...i->...", J[..., 0, :], _cross(J[..., 1, :], J[..., 2, :]))
 
 
 def hex_inverted(Xe: np.ndarray) -> np.ndarray:
@@ -132,13 +139,6 @@ def hex_stiffness(X: np.ndarray, cells: np.ndarray, D: np.ndarray) -> np.ndarray
     B = _b_matrix(dN)  # (E, q, 6, 24)
     DB = D @ B * detJ[:, :, None, None]
     return (np.swapaxes(B, 2, 3) @ DB).sum(axis=1)
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross products of (E, 3) arrays (np.cross without its axis handling)."""
-    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
-    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=1)
 
 
 def _frames(a: np.ndarray, b: np.ndarray) -> np.ndarray:

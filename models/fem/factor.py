@@ -56,12 +56,17 @@ class SparseFactor:
 
     def _factor_cholmod(self, A):
         low = sp.tril(A, format="csc")
-        cols = np.repeat(np.arange(low.shape[1], dtype=np.int64), np.diff(low.indptr))
-        S = cvxopt.spmatrix(cvxopt.matrix(low.data.astype(float)), cvxopt.matrix(low.indices.astype(np.int64)),
-                            cvxopt.matrix(cols), size=low.shape)
+        S = _cholmod_matrix(self.n, low.indptr, low.indices, low.data)
         F = _cholmod.symbolic(S)
         _cholmod.numeric(S, F)
         self._F = F
+
+    @classmethod
+    def _of_cholmod(cls, n: int, F) -> "SparseFactor":
+        """A factor wrapping CHOLMOD's ``F`` (made elsewhere, e.g. by :class:`Refactorizer`)."""
+        f = cls.__new__(cls)
+        f.n, f.backend, f._F = n, "cholmod", F
+        return f
 
     def solve(self, b) -> np.ndarray:
         b = np.asarray(b, float)
@@ -97,10 +102,7 @@ class Refactorizer:
             self.analysis_seconds = 0.0
             if version != self._version or self._S is None:
                 t0 = time.perf_counter()
-                cols = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr))
-                self._S = cvxopt.spmatrix(cvxopt.matrix(np.asarray(data, float)),
-                                          cvxopt.matrix(np.asarray(indices, np.int64)), cvxopt.matrix(cols),
-                                          size=(n, n))
+                self._S = _cholmod_matrix(n, indptr, indices, data)
                 self._F = _cholmod.symbolic(self._S)
                 self._version = version
                 self.symbolic_analyses += 1
@@ -109,12 +111,17 @@ class Refactorizer:
                 self._S.V = cvxopt.matrix(np.asarray(data, float))
             try:
                 _cholmod.numeric(self._S, self._F)
-                f = SparseFactor.__new__(SparseFactor)
-                f.n, f.backend, f._F = n, "cholmod", self._F
-                return f
+                return SparseFactor._of_cholmod(n, self._F)
             except ArithmeticError:  # not positive definite: LU below, and a fresh analysis next time
                 self._version = self._S = self._F = None
         return SparseFactor(symmetric_from_lower(n, indptr, indices, data), prefer="superlu")
+
+
+def _cholmod_matrix(n: int, indptr, indices, data):
+    """cvxopt's sparse matrix of a lower triangle given in compressed columns (what CHOLMOD reads)."""
+    cols = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr))
+    return cvxopt.spmatrix(cvxopt.matrix(np.asarray(data, float)), cvxopt.matrix(np.asarray(indices, np.int64)),
+                           cvxopt.matrix(cols), size=(n, n))
 
 
 def symmetric_from_lower(n: int, indptr, indices, data) -> sp.csc_matrix:

@@ -196,9 +196,9 @@ class MappedPenaltyContact:
     def pattern_reserve(self, margin: float = 0.0) -> sp.csr_matrix:
         """The grid-node couplings this field may bring into the solver's matrix: every node of a cell
         holding points of A with every node of a cell holding points of B (and with each other), for the
-        cell pairs whose rest
-        boxes are within the activation distance plus ``margin`` (mm) of each other along every axis, so
-        that pairs switching on and off rarely change the matrix's pattern (:mod:`models.fem.system`).
+        cell pairs whose rest boxes are within the activation distance plus ``margin`` (mm) of each other
+        along every axis, so that pairs switching on and off rarely change the matrix's pattern
+        (:mod:`models.fem.system`).
         Values are placeholders; only the pattern counts."""
         ca, cb = np.unique(self.ma.cell), np.unique(self.mb.cell)
         lo, hi = self._cell_boxes

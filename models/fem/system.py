@@ -8,8 +8,9 @@ and, per field, where its matrix's entries land in it; a refresh then only scatt
 pattern is rebuilt when a field brings entries it does not hold (contact pairs that were never active
 before); it keeps the entries it had, so pairs that come and go do not change it each time, until it has
 grown to ``slack`` times its size when last built from scratch. A field can reserve entries up front
-(``pattern_reserve()``: the contact's possible pairs), which the pattern always holds. Its ``version`` changes with it, which tells the
-factorisation when the symbolic analysis must be redone (:class:`models.fem.factor.Refactorizer`).
+(``pattern_reserve()``: the contact's possible pairs), which the pattern always holds. The held DOFs'
+rows and columns are left out of the returned pattern. Its ``version`` changes with that pattern, which
+tells the factorisation when the symbolic analysis must be redone (:class:`models.fem.factor.Refactorizer`).
 """
 
 from __future__ import annotations
@@ -59,7 +60,6 @@ class SystemAssembler:
         self.rows = self.keys % self.n
         self.cols = self.keys // self.n
         self.indices = self.rows.astype(np.int32)
-        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(self.cols, minlength=self.n))]).astype(np.int64)
         self.diag_pos = np.searchsorted(self.keys, np.arange(self.n, dtype=np.int64) * (self.n + 1))
 
     def _positions(self, slot: int, M: sp.csr_matrix):
