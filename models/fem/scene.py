@@ -10,8 +10,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
 
 from models.fem.bones import tetrahedralize_to_count
+from models.fem.elements import nearest_rotations
 from models.fem.fields import GridElasticity, MappedBoneElasticity, MappedPenaltyContact, MappedSprings
 from models.fem.grid import build_grid
 from models.fem.integrator import ImplicitEuler
@@ -119,17 +121,41 @@ def bone_cell_masks(grid, femur, tibia):
 
 
 def node_rotations(grid, soft, femur, tibia, solver):
-    """The rotation of the material around each grid node, for the warped preconditioner: the bone's
-    best-fit rotation for the nodes of a bone's cells (the stiff part of the matrix turns with the bone),
-    elsewhere that of one grid cell around the node."""
-    rep = np.zeros(grid.n_nodes, dtype=np.int64)
-    rep[grid.cells.ravel()] = np.repeat(np.arange(len(grid.cells)), 8)
-    masks = bone_cell_masks(grid, femur, tibia)
+    """The rotation of the material around each grid node, for the warped preconditioner.
+
+    Nodes that carry bone (the nodes of the cells holding a bone's nodes) turn with the bones: the bones'
+    best-fit rotations, averaged with the weights by which each bone's nodes load the node (its column
+    sums of the embedding; a node of a cell holding both bones blends the two). The bones are about a
+    thousand times stiffer than the tissue, so a wrong rotation at even a few of these nodes spoils the
+    preconditioner: measured on the prior's 120 deg case, the four nodes shared by femur and tibia given a
+    tissue cell's rotation took a kept factorisation from about 33 to 130 iterations per step. Elsewhere,
+    the average of the rotations of the live grid cells around the node (its nearest rotation)."""
+    n = grid.n_nodes
+    weights = [np.asarray(b.map.J.sum(axis=0)).ravel() for b in (femur, tibia)]
+    bone = (weights[0] + weights[1]) > 0
+    # node-cell incidence, rows: nodes; the cells' rotations are summed per node by one sparse product
+    cells = grid.cells
+    incidence = sp.csr_matrix((np.ones(cells.size), (cells.ravel(), np.repeat(np.arange(len(cells)), 8))),
+                              shape=(n, len(cells)))
+    tissue = np.nonzero(~bone)[0]
+    inc_t = incidence[tissue]
 
     def rotations():
-        R = soft.el.R[rep].copy()
-        for bone, m in zip((femur, tibia), masks):
-            R[m] = best_fit_rotation(bone.el.X, bone.bone_positions(solver.x))
+        R = np.empty((n, 3, 3))
+        alive = soft.el.alive
+        S = (inc_t @ (soft.el.R.reshape(-1, 9) * alive[:, None])).reshape(-1, 3, 3)
+        none = (inc_t @ alive.astype(float)) == 0  # every cell around it dropped: any cell will do
+        if none.any():
+            S[none] = (inc_t[none] @ soft.el.R.reshape(-1, 9)).reshape(-1, 3, 3)
+        R[tissue] = nearest_rotations(S)
+        Rb = [best_fit_rotation(b.el.X, b.bone_positions(solver.x)) for b in (femur, tibia)]
+        wf, wt = weights[0][bone], weights[1][bone]
+        one = (wf == 0) | (wt == 0)
+        Rn = np.where((wt == 0)[:, None, None], Rb[0], Rb[1])
+        both = ~one
+        if both.any():
+            Rn[both] = nearest_rotations(wf[both, None, None] * Rb[0] + wt[both, None, None] * Rb[1])
+        R[bone] = Rn
         return R
 
     return rotations
