@@ -46,6 +46,25 @@ def test_assembly_matches_the_direct_sum_as_entries_come_and_go():
     assert versions[3] == versions[2]  # entries seen before are kept: no change when they return
 
 
+def test_a_primed_pattern_needs_no_work_at_the_first_assembly():
+    """prime() builds the pattern ahead: the first assembly of matrices with the primed patterns (other
+    values) changes nothing in it and gives the direct sum; a new entry still grows it."""
+    n = 50
+    rng = np.random.default_rng(4)
+    d = rng.uniform(5, 10, n)
+    a, b = _sym(n, 0.05, 1), _sym(n, 0.04, 2)
+    sa = SystemAssembler(n)
+    sa.prime([a, b])
+    keys = sa.keys.copy()
+    mats = [3.0 * a, -0.5 * b]
+    indptr, indices, data = sa.assemble(d, mats, 0.7)
+    assert sa.pattern_seconds == 0.0 and np.array_equal(sa.keys, keys)
+    np.testing.assert_allclose(symmetric_from_lower(n, indptr, indices, data).toarray(),
+                               _reference(d, mats, 0.7, np.ones(n)), atol=1e-12)
+    sa.assemble(d, [a, _sym(n, 0.04, 9)], 0.7)
+    assert sa.keys.size > keys.size
+
+
 def test_reserved_entries_keep_the_pattern_and_an_outgrown_one_is_rebuilt():
     n = 40
     d = np.full(n, 3.0)

@@ -198,6 +198,7 @@ def build_association_model(mech: Mechanism, settings: FemSettings | None = None
     solver = ImplicitEuler(grid.X, mass, [soft, femur, tibia, springs, contact], s.dt, s.rayleigh_mass,
                            s.rayleigh_stiffness, fixed=fixed)
     solver.node_rotations = node_rotations(grid, soft, femur, tibia, solver)
+    solver.prepare()
     return AssociationModel(grid=grid, femur=femur, tibia=tibia, springs=springs, contact=contact, soft=soft,
                             solver=solver, skin_vertices=np.asarray(skin.vertices), skin_faces=np.asarray(skin.faces),
                             femur_surface=ph.femur, tibia_surface=tibia_surface, settings=s, phantom=ph,

@@ -96,6 +96,17 @@ class SystemAssembler:
         self._cache.clear()
         self._geometry()
 
+    def prime(self, matrices) -> None:
+        """Build the pattern from these matrices (with the diagonal and the reserve) and cache where their
+        entries land, ahead of the first :meth:`assemble` (matrices of the same patterns then find their
+        positions cached)."""
+        mats = [sp.csr_matrix(M) for M in matrices]
+        for M in mats:
+            M.sum_duplicates()
+        self._rebuild(mats)
+        for i, M in enumerate(mats):
+            self._positions(i, M)
+
     def assemble(self, d, matrices, c: float, free=None):
         """``d`` (n,) diagonal, ``matrices`` list of (n, n) sparse, ``c`` their factor; ``free`` (n,) 1/0 per
         DOF (held ones: identity row and column). Returns ``(indptr, indices, data)`` of the lower triangle
