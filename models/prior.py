@@ -2,8 +2,8 @@
 
 Flexion from depth: the knee's skin, posed by the (fitted) mechanism at a candidate flexion, is
 registered to the one-sided point cloud by ICP; the candidate whose registered skin lies closest to the
-points wins. A coarse scan over the assembly range (10 deg) is refined by Brent's method to 0.5 deg,
-each candidate's ICP starting from the registration of the nearest one scored. The posed skin is never built as one mesh: its parts (thigh, shank, knee and patella solids)
+points wins. A coarse scan over the assembly range (10 deg) is refined by a golden-section search to
+0.5 deg. The posed skin is never built as one mesh: its parts (thigh, shank, knee and patella solids)
 are meshed, sampled and put in ray-casting scenes once and only moved per candidate (a union per
 candidate took about two thirds of the time). The fit quality reported: the points' RMS distance to the
 registered skin, the inlier fraction
@@ -23,7 +23,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 from scipy.spatial import cKDTree
 
 from models.fem.depth import icp
@@ -33,6 +32,7 @@ from models.phantom import Phantom
 from toolkit.conventions import invert_poses, joint_to_pose, transform_points
 from toolkit.errors import KneeInputError
 
+GOLDEN = (math.sqrt(5) - 1) / 2
 #: Voxel size (mm) the cloud is thinned to before registration.
 VOXEL_MM = 4.0
 
@@ -204,22 +204,26 @@ def estimate_flexion(mech: Mechanism, phantom: Phantom, points, T_init=None, coa
             best = (s, a, T, inl)
     ordered = sorted(scores.values())
     contrast = ordered[1] / ordered[0] if len(ordered) > 1 and ordered[0] > 0 else float("inf")
-    # refinement within one coarse step either side: Brent's method (parabolic steps, golden-section ones
-    # where those do not pay), about two ICPs fewer than a golden-section search to the same tolerance
+    # golden-section refinement within one coarse step either side
     step = math.radians(coarse_step_deg)
     x0, x3 = max(a0, best[1] - step), min(a1, best[1] + step)
     cache = {}
 
     def f(a):
-        a = float(a)
         if a not in cache:
-            # ICP from the registration of the nearest angle scored so far (the coarse best's at first)
-            T0 = cache[min(cache, key=lambda b: abs(b - a))][1] if cache else (init if best[2] is None else best[2])
-            cache[a] = _score(sk, a, pts, T0)
+            cache[a] = _score(sk, a, pts, best[2] if best[2] is not None else init)
             scores[round(math.degrees(a), 3)] = cache[a][0]
         return cache[a][0]
 
-    a = float(minimize_scalar(f, bounds=(x0, x3), method="bounded", options={"xatol": math.radians(tol_deg / 2)}).x)
+    x1, x2 = x3 - GOLDEN * (x3 - x0), x0 + GOLDEN * (x3 - x0)
+    while x3 - x0 > math.radians(tol_deg):
+        if f(x1) < f(x2):
+            x3, x2 = x2, x1
+            x1 = x3 - GOLDEN * (x3 - x0)
+        else:
+            x0, x1 = x1, x2
+            x2 = x0 + GOLDEN * (x3 - x0)
+    a = 0.5 * (x0 + x3)
     if f(best[1]) < f(a):  # the coarse scan's best, scored the same way as the refinement
         a = best[1]
     s, T, inl = cache[a]
