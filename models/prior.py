@@ -89,9 +89,22 @@ class PosedSkin:
         self.parts = parts  # [(SurfaceQuery in the part's frame, pose (4, 4))]
         self.inverse = [invert_poses(T) for _, T in parts]
 
-    def signed_distance(self, points) -> np.ndarray:
-        return np.min([q.signed_distance(transform_points(Ti, points)) for (q, _), Ti in zip(self.parts, self.inverse)],
-                      axis=0)
+    def signed_distance(self, points, margin: float = 10.0) -> np.ndarray:
+        """The smallest of the parts' signed distances, each part queried only for the points within
+        ``margin`` of its bounding box (a point farther than that is at least ``margin`` outside it); a
+        point that ends up farther than ``margin`` from every part queried is queried against all of them.
+        The same values as querying every part for every point, for about a third of the queries."""
+        points = np.asarray(points, float)
+        out = np.full(len(points), np.inf)
+        local = [transform_points(Ti, points) for Ti in self.inverse]
+        for (q, _), p in zip(self.parts, local):
+            near = np.nonzero(np.all((p >= q.lo - margin) & (p <= q.hi + margin), axis=1))[0]
+            if near.size:
+                out[near] = np.minimum(out[near], q.signed_distance(p[near]))
+        far = np.nonzero(out > margin)[0]
+        if far.size:
+            out[far] = np.min([q.signed_distance(p[far]) for (q, _), p in zip(self.parts, local)], axis=0)
+        return out
 
     def inside_part(self, i: int, points) -> np.ndarray:
         """(P,) bool: the points lie inside part ``i`` (ray parity, much cheaper than a distance)."""

@@ -61,6 +61,11 @@ def test_posed_skin_by_parts_matches_the_union_mesh(volunteer, scene):
     assert np.median(np.abs(got[outside] - ref[outside])) < 0.05
     assert np.mean(np.abs(got[outside] - ref[outside]) < 0.5) > 0.95  # all but points facing a crease
     np.testing.assert_array_equal(got < 0, ref < 0)  # inside the union exactly when inside a part
+    # each part queried only near its box: the same values as every part queried for every point
+    posed = sk.at(alpha)
+    every = np.min([q.signed_distance((p - T[:3, 3]) @ T[:3, :3]) for q, T in posed.parts], axis=0)
+    np.testing.assert_array_equal(got, every)
+    np.testing.assert_array_equal(posed.signed_distance(p, margin=0.0), every)
     samples, normals, _ = sk.samples(alpha)
     assert np.abs(SurfaceQuery.of(union).signed_distance(samples)).max() < 0.5
     assert len(samples) > 3000 and np.allclose(np.linalg.norm(normals, axis=1), 1.0)

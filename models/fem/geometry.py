@@ -13,6 +13,8 @@ class SurfaceQuery:
     """Repeated signed-distance / inside queries against one closed mesh (vertices (V, 3), faces (F, 3))."""
 
     def __init__(self, vertices, faces):
+        v = np.asarray(vertices, float)
+        self.lo, self.hi = v.min(axis=0), v.max(axis=0)  # the mesh's bounding box
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
                                  o3d.core.Tensor(np.asarray(faces, np.uint32)))
