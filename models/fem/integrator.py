@@ -150,10 +150,9 @@ class ImplicitEuler:
     def _refresh(self):
         t0 = time.perf_counter()
         n3 = 3 * len(self.m)
-        self._assembler()
+        sysm = self._assembler()
         if self._refactor is None or self._refactor.prefer != self.factor_backend:
             self._refactor = Refactorizer(self.factor_backend)
-        sysm = self._system
         indptr, indices, data = sysm.assemble(np.repeat(self._cm * self.m, 3), [f.matrix() for f in self.fields],
                                               self._ck, self._free)
         self._lu = self._refactor.factor(sysm.version, n3, indptr, indices, data)

@@ -150,9 +150,8 @@ def node_rotations(grid, soft, femur, tibia, solver):
         R[tissue] = nearest_rotations(S)
         Rb = [best_fit_rotation(b.el.X, b.bone_positions(solver.x)) for b in (femur, tibia)]
         wf, wt = weights[0][bone], weights[1][bone]
-        one = (wf == 0) | (wt == 0)
-        Rn = np.where((wt == 0)[:, None, None], Rb[0], Rb[1])
-        both = ~one
+        Rn = np.where((wt == 0)[:, None, None], Rb[0], Rb[1])  # nodes carrying one bone: its rotation
+        both = (wf > 0) & (wt > 0)
         if both.any():
             Rn[both] = nearest_rotations(wf[both, None, None] * Rb[0] + wt[both, None, None] * Rb[1])
         R[bone] = Rn
