@@ -6,9 +6,9 @@ Per case, timed as `knee compare` times it (the model is built once per prior an
 rendered before the clock starts): the flexion estimate, the registration, the tibia's correction, the
 initialisation and the surface phase. The sweep runs ``--repeat`` times (default 2) and the table gives
 each case's best and worst time: on a shared machine the same case's time moves by 20-50 % between runs,
-and the best of the runs is the closest measure of the toolkit's own time. In the same run, as baselines: method (iii) with SciPy's SuperLU
-LU as the solver's factorisation instead of CHOLMOD's Cholesky (every case), and the paper's method (i)
-on three of the cases (PAPER_CASES).
+and the best of the runs is the closest measure of the toolkit's own time. In the same runs, as
+baselines: method (iii) with SciPy's SuperLU LU as the solver's factorisation instead of CHOLMOD's
+Cholesky (every case), and the paper's method (i) on three of the cases (PAPER_CASES).
 
     .venv/bin/python scripts/bench_prior.py [--repeat 2]
 """
@@ -66,10 +66,10 @@ def main():
                 row = result_row(cam_name, fl, r)
                 runs[(cam_name, fl)].setdefault(label, []).append((r.wall_seconds, r.steps, footprint_error(row)))
             o = runs[(cam_name, fl)]
-            print(f"[run {rep + 1}/{args.repeat}, {i + 1}/{len(CASES)}] {cam_name} {fl}: (iii) {o['links'][-1][0]:.2f} s, "
-                  f"{o['links'][-1][1]} steps, footprints {o['links'][-1][2]:.2f} mm; with SuperLU "
-                  f"{o['links_superlu'][-1][0]:.2f} s" + (f"; paper's method {o['paper'][-1][0]:.1f} s" if "paper" in o else ""),
-                  file=sys.stderr, flush=True)
+            paper = f"; paper's method {o['paper'][-1][0]:.1f} s" if "paper" in o else ""
+            print(f"[run {rep + 1}/{args.repeat}, {i + 1}/{len(CASES)}] {cam_name} {fl}: "
+                  f"(iii) {o['links'][-1][0]:.2f} s, {o['links'][-1][1]} steps, footprints {o['links'][-1][2]:.2f} mm; "
+                  f"with SuperLU {o['links_superlu'][-1][0]:.2f} s{paper}", file=sys.stderr, flush=True)
 
     def best(c, label):
         return min(w for w, _, _ in runs[c][label])

@@ -16,7 +16,7 @@ class SurfaceQuery:
         v = np.asarray(vertices, float)
         self.lo, self.hi = v.min(axis=0), v.max(axis=0)  # the mesh's bounding box
         self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
+        self.scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)),
                                  o3d.core.Tensor(np.asarray(faces, np.uint32)))
 
     @classmethod

@@ -9,16 +9,17 @@ stiffnesses directly (gather, element products, scatter), warm-started from the 
 preconditioned with a sparse factorisation of the assembled matrix (:mod:`models.fem.factor`: a supernodal
 Cholesky, CHOLMOD, when available, else SuperLU's LU in symmetric mode; single-precision factors were tried and
 cost more iterations after the prior's initialisation than they saved), warped by the nodes' rotations since
-it was computed. The factorisation is kept across steps and refreshed (the fields' matrices scattered
-onto a lower-triangle pattern kept across refreshes, :mod:`models.fem.system`, and refactorised with the
-symbolic analysis reused while that pattern stays) by an amortised rule: when the iterations spent beyond the count right after the last refresh
-add up to more than the cost of a refactorisation (in iterations: measured, its time over an iteration's,
-or a fixed ``refresh_cost``); and at once, in the middle of
-a step, when CG has not converged within ``restart_iterations``, or earlier when the rate at which the
-residual has fallen so far predicts that finishing would take longer than a refactorisation and the few
-iterations after one (the matrix has moved too far from the factorised one, e.g. when many surface springs or
-contact pairs switch at once; both costs are measured as the solver runs): the solve then finishes from where
-it stopped with the new factors. The conjugate-gradient loop is the toolkit's own, for that residual history.
+it was computed (nodal rotations: :func:`models.fem.scene.node_rotations`). The factorisation is kept
+across steps and refreshed (the fields' matrices scattered onto a lower-triangle pattern kept across
+refreshes, :mod:`models.fem.system`, built when the model is built by :meth:`ImplicitEuler.prepare`, and
+refactorised with the symbolic analysis reused while that pattern stays) by an amortised rule: when the
+iterations spent beyond the count right after the last refresh add up to more than the cost of a
+refactorisation (in iterations: measured, its time over an iteration's, or a fixed ``refresh_cost``); and
+at once, in the middle of a step, when CG has not converged within ``restart_iterations``, or earlier
+when the rate at which the residual has fallen so far predicts that finishing would take longer than a
+refactorisation and the few iterations after one (the matrix has moved too far from the factorised one,
+e.g. when many surface springs or contact pairs switch at once; both costs are measured as the solver
+runs): the solve then finishes from where it stopped with the new factors. The conjugate-gradient loop is the toolkit's own, for that residual history.
 Fields that offer ``low_rank_factor()`` (springs between wide bone attachments) enter the preconditioner
 by the Woodbury identity instead of the assembled matrix.
 """
