@@ -19,9 +19,9 @@ at once, in the middle of a step, when CG has not converged within ``restart_ite
 when the rate at which the residual has fallen so far predicts that finishing would take longer than a
 refactorisation and the few iterations after one (the matrix has moved too far from the factorised one,
 e.g. when many surface springs or contact pairs switch at once; both costs are measured as the solver
-runs): the solve then finishes from where it stopped with the new factors. The conjugate-gradient loop is the toolkit's own, for that residual history.
-Fields that offer ``low_rank_factor()`` (springs between wide bone attachments) enter the preconditioner
-by the Woodbury identity instead of the assembled matrix.
+runs): the solve then finishes from where it stopped with the new factors. The conjugate-gradient loop is
+the toolkit's own, for that residual history. Fields that offer ``low_rank_factor()`` (springs between
+wide bone attachments) enter the preconditioner by the Woodbury identity instead of the assembled matrix.
 """
 
 from __future__ import annotations
