@@ -84,3 +84,34 @@ def test_phantom_bones_reach_the_papers_element_count(volunteer):
     for bone in (ph.femur, ph.tibia):
         X, T, edge = tetrahedralize_to_count(bone, (400, 700))
         assert 400 <= len(T) <= 900, (len(T), edge)
+
+
+def test_mapped_bone_field_matches_embedding_then_elements(capsule_grid):
+    """The bone field gathers its element positions straight from the grid and scatters straight back (one
+    sparse map each, the embedding composed in): the same forces and products as embedding the nodes
+    (J x), computing the tetrahedra's co-rotational forces there, and returning them through J^T."""
+    from models.fem.elements import CorotationalElements
+    from models.fem.fields import MappedBoneElasticity
+
+    skin, g = capsule_grid
+    bone = trimesh.creation.icosphere(subdivisions=2, radius=30.0)
+    Xb, tets = tetrahedralize(bone, 12.0)
+    field = MappedBoneElasticity(g, Xb, tets, E=1500.0, nu=0.3)
+    rng = np.random.default_rng(3)
+    x = g.X + rng.normal(scale=0.4, size=g.X.shape)
+    m = TrilinearMapping(g, Xb)
+    ref = CorotationalElements(Xb, tets, 1500.0, 0.3)
+    xb = m.apply(x)
+    expected = m.apply_transpose(ref.forces(xb))  # np.add.at gather of the element forces, then J^T
+    np.testing.assert_allclose(field.forces(x), expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+    # the tangent's product at those rotations: R K R^T on the embedded displacement, returned by J^T
+    p = rng.normal(size=g.X.shape)
+    pe = m.apply(p)[ref.cells]
+    Kr = ref.rotated_stiffness()
+    fe = (Kr @ pe.reshape(len(tets), 12, 1)).reshape(-1, 4, 3)
+    out = np.zeros_like(Xb)
+    np.add.at(out, ref.cells, fe)
+    np.testing.assert_allclose(field.apply(p), m.apply_transpose(out), atol=1e-9 * np.abs(out).max())
+    # the cached transposed rotations follow the rotations when they are replaced
+    field.el.R = np.broadcast_to(np.eye(3), field.el.R.shape)
+    np.testing.assert_allclose(field.el.Rt, np.broadcast_to(np.eye(3), field.el.R.shape))

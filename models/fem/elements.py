@@ -108,28 +108,28 @@ def nearest_rotations(M: np.ndarray, tol: float = 1e-12, max_iterations: int = 1
     iteration X <- (g X + X^-T / g) / 2, g = |det X|^(-1/3), with X^-T = cofactor(X) / det X written out
     entry by entry (each entry one contiguous vector over the K matrices): several times cheaper than an
     SVD per matrix for many near-rotations (e.g. sums of neighbouring elements' rotations), converging
-    quadratically (three or four iterations). Matrices with det <= 0 (or not converged) go to the SVD, a
-    reflection's smallest singular direction flipped."""
+    quadratically (three or four iterations). Matrices with det <= 0 (or not converged: a last change
+    above 1e-9) go to the SVD, a reflection's smallest singular direction flipped."""
     M = np.asarray(M, float)
     d0 = det3(M)
     ok = d0 > 1e-12 * np.einsum("kij,kij->k", M, M) ** 1.5
-    X = np.ascontiguousarray(np.moveaxis(M[ok], 0, -1))  # (3, 3, k)
+    X = np.ascontiguousarray(M[ok].reshape(-1, 9).T)  # (9, k): the entries row by row, each over the k
+    change = np.zeros(X.shape[1])
     for _ in range(max_iterations):
-        a, b, c = X  # rows, each (3, k)
-        C = np.stack([_cross(b.T, c.T).T, _cross(c.T, a.T).T, _cross(a.T, b.T).T])  # cofactors (3, 3, k)
-        d = np.einsum("ik,ik->k", a, C[0])
+        a0, a1, a2, b0, b1, b2, c0, c1, c2 = X
+        C = np.array([b1 * c2 - b2 * c1, b2 * c0 - b0 * c2, b0 * c1 - b1 * c0,
+                      c1 * a2 - c2 * a1, c2 * a0 - c0 * a2, c0 * a1 - c1 * a0,
+                      a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])  # cofactors
+        d = a0 * C[0] + a1 * C[1] + a2 * C[2]
         g = np.cbrt(np.abs(d))
-        Xn = 0.5 * (X / g + C / (d / g))
-        change = np.abs(Xn - X).max() if X.size else 0.0
+        Xn = 0.5 * (X / g + C * (g / d))
+        change = np.abs(Xn - X).max(axis=0) if X.size else change
         X = Xn
-        if change < tol:
+        if not X.size or change.max() < tol:
             break
     out = np.empty_like(M)
-    out[ok] = np.moveaxis(X, -1, 0)
-    bad = np.nonzero(~ok)[0]
-    if X.size:
-        off = np.abs(np.einsum("jik,jlk->kil", X, X) - np.eye(3)).max(axis=(1, 2))
-        bad = np.concatenate([bad, np.nonzero(ok)[0][off > 1e-9]])
+    out[ok] = X.T.reshape(-1, 3, 3)
+    bad = np.concatenate([np.nonzero(~ok)[0], np.nonzero(ok)[0][change > 1e-9]])
     if bad.size:
         U, _, Vt = np.linalg.svd(M[bad])
         flip = np.linalg.det(U @ Vt) < 0
@@ -238,8 +238,27 @@ class CorotationalElements:
         self._frames = tet_frames if self.kind == "tet" else hex_frames
         self.Xe = self.X[self.cells]  # per-element rest coordinates (E, n, 3)
         self._F0 = self._frames(self.Xe)
+        self._F0t = np.ascontiguousarray(np.swapaxes(self._F0, 1, 2))
         self.R = np.broadcast_to(np.eye(3), (len(self.cells), 3, 3)).copy()
         self.alive = np.ones(len(self.cells), bool)  # False for elements dropped by :meth:`rebase`
+
+    @property
+    def R(self) -> np.ndarray:
+        """Element rotations (E, 3, 3), rest to now."""
+        return self._R
+
+    @R.setter
+    def R(self, value) -> None:
+        self._R = np.asarray(value, float)
+        self._Rt = None
+
+    @property
+    def Rt(self) -> np.ndarray:
+        """The rotations' transposes, (E, 3, 3) contiguous (kept until the rotations change: products with
+        a transposed view cost about three times as much)."""
+        if self._Rt is None:
+            self._Rt = np.ascontiguousarray(np.swapaxes(self._R, 1, 2))
+        return self._Rt
 
     @property
     def n_nodes_per_element(self) -> int:
@@ -269,6 +288,7 @@ class CorotationalElements:
         F0 = self._F0.copy()
         F0[ok] = self._frames(xe[ok])
         self._F0 = F0
+        self._F0t = np.ascontiguousarray(np.swapaxes(F0, 1, 2))
         self.R = np.broadcast_to(np.eye(3), (len(self.cells), 3, 3)).copy()
         return int((~ok).sum())
 
@@ -277,22 +297,24 @@ class CorotationalElements:
         ``xe``); stored in ``self.R``."""
         if xe is None:
             xe = np.asarray(x, float)[self.cells]
-        self.R = self._frames(xe) @ np.swapaxes(self._F0, 1, 2)
+        self.R = self._frames(xe) @ self._F0t
         return self.R
 
-    def element_forces(self, x: np.ndarray, corotational: bool = True) -> np.ndarray:
-        """Internal (restoring) forces per element node, (E, n, 3): ``-R K (R^T x - X)``.
+    def element_forces(self, x: np.ndarray, corotational: bool = True, xe: np.ndarray | None = None) -> np.ndarray:
+        """Internal (restoring) forces per element node, (E, n, 3): ``-R K (R^T x - X)``, from node positions
+        ``x`` (N, 3) or their per-element gather ``xe`` (E, n, 3).
 
         With ``corotational=False``, the small-strain force ``-K (x - X)`` (for comparison).
         """
-        xe = np.asarray(x, float)[self.cells]
+        if xe is None:
+            xe = np.asarray(x, float)[self.cells]
         Xe = self.Xe
         E, n = self.cells.shape
         if corotational:
             R = self.update_rotations(x, xe)
             u = xe @ R - Xe  # rows: (R^T x_a)^T - X_a
             f = (self.K @ u.reshape(E, 3 * n, 1)).reshape(E, n, 3)
-            return -(f @ np.swapaxes(R, 1, 2))
+            return -(f @ self.Rt)
         u = (xe - Xe).reshape(E, 3 * n, 1)
         return -(self.K @ u).reshape(E, n, 3)
 
