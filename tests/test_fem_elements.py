@@ -83,6 +83,29 @@ def test_assembly_matches_naive_coo_and_forces():
     assert abs(K - K.T).max() < 1e-10  # symmetric
 
 
+@pytest.mark.parametrize("kind", ["hex", "tet"])
+def test_rotated_stiffness_is_the_tangent_of_the_corotational_force(kind):
+    """``rotated_stiffness()`` against the rotation written out as a block-diagonal matrix, and against
+    the forces: for rotations held fixed, -(f(x + h p) - f(x)) / h = R K R^T p exactly (linear in x)."""
+    X, cells = _mesh(kind, distort=1.5)
+    el = CorotationalElements(X, cells, 7.0, 0.3)
+    rng = np.random.default_rng(4)
+    x = X + rng.normal(0, 0.8, X.shape)
+    el.forces(x)  # rotations at x
+    Kr = el.rotated_stiffness()
+    n = cells.shape[1]
+    Rb = np.einsum("ab,eij->eaibj", np.eye(n), el.R).reshape(len(cells), 3 * n, 3 * n)
+    np.testing.assert_allclose(Kr, Rb @ el.K @ np.swapaxes(Rb, 1, 2), atol=1e-12 * np.abs(el.K).max())
+    R_at_x = el.R.copy()
+    p = rng.normal(size=X.shape)
+    fe0 = el.element_forces(x)
+    el.update_rotations = lambda *a, **k: R_at_x  # hold the rotations at x
+    fe1 = el.element_forces(x + 1e-3 * p)
+    expected = -(fe1 - fe0) / 1e-3
+    got = (Kr @ p[cells].reshape(len(cells), 3 * n, 1)).reshape(expected.shape)
+    np.testing.assert_allclose(got, expected, atol=1e-7 * np.abs(expected).max())
+
+
 def _cantilever(kind, n, L=100.0, h=10.0, E=1000.0, nu=0.3, P=1.0):
     X, cells = _mesh(kind, n=n, size=(L, h, h))
     el = CorotationalElements(X, cells, E, nu)

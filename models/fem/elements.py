@@ -326,14 +326,14 @@ class CorotationalElements:
         return out
 
     def rotated_stiffness(self) -> np.ndarray:
-        """Element tangents ``R K R^T`` for the current rotations, (E, 3n, 3n)."""
+        """Element tangents ``R K R^T`` for the current rotations, (E, 3n, 3n) (R acting on every node's
+        xyz block). Two products of each element's (3n n, 3) rows with R^T: ``Y = K R^T``, then, K being
+        symmetric, ``R K R^T = (K R^T)^T R^T = Y^T R^T`` (contiguous operands throughout)."""
         E, n = self.cells.shape
-        R = self.R
-        # left: (R K)[a i, :] = sum_j R[i, j] K[a j, :]
-        left = (R[:, None, :, :] @ self.K.reshape(E, n, 3, 3 * n)).reshape(E, 3 * n, 3 * n)
-        # right: (.. R^T)[:, b l] = sum_k (..)[:, b k] R[l, k]
-        right = left.reshape(E, 3 * n, n, 3) @ np.swapaxes(R, 1, 2)[:, None, :, :]
-        return right.reshape(E, 3 * n, 3 * n)
+        Rt = self.Rt
+        Y = (self.K.reshape(E, 3 * n * n, 3) @ Rt).reshape(E, 3 * n, 3 * n)   # K R^T
+        Yt = np.ascontiguousarray(np.swapaxes(Y, 1, 2))                      # R K (K symmetric)
+        return (Yt.reshape(E, 3 * n * n, 3) @ Rt).reshape(E, 3 * n, 3 * n)   # R K R^T
 
 
 def element_strains(X: np.ndarray, cells: np.ndarray, u: np.ndarray) -> np.ndarray:
