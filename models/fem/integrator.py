@@ -185,11 +185,10 @@ class ImplicitEuler:
         if self.node_rotations is None:
             return self._solve_ref
         W = self.node_rotations() @ np.swapaxes(self._R_ref, 1, 2)  # (N, 3, 3)
-        Wt = np.swapaxes(W, 1, 2)
 
-        def apply(r):
-            z = self._solve_ref((Wt @ r.reshape(-1, 3, 1)).ravel())
-            return (W @ z.reshape(-1, 3, 1)).ravel()
+        def apply(r):  # (einsum: about three times cheaper than a batched product of 3 x 1 columns)
+            z = self._solve_ref(np.einsum("nji,nj->ni", W, r.reshape(-1, 3)).ravel())
+            return np.einsum("nij,nj->ni", W, z.reshape(-1, 3)).ravel()
 
         return apply
 
