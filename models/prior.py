@@ -57,6 +57,9 @@ COARSE_ICP_ITERATIONS = 15
 #: Fewest points, and fewest below the knee (shank), to attempt an estimate.
 MIN_POINTS = 500
 MIN_SHANK_POINTS = 150
+#: Fewest registered points on the shank's own skin (nearest to it, within 5 mm) below which the estimate
+#: warns that the flexion is seen only through the knee's outline.
+MIN_SEEN_SHANK = 100
 
 
 @dataclass
@@ -64,7 +67,9 @@ class FlexionEstimate:
     """Estimated flexion (rad) and pose ``T_world_model`` (4, 4); the fit quality: ``rms`` (mm, points to
     the registered skin), ``inliers`` (fraction within 5 mm), ``scores`` {deg: rms} of every candidate (the
     coarse scan's measured to the skin samples' tangent planes, the refinement's to the skin) and
-    ``contrast`` (the coarse scan's second-best score over the best; near 1 means ambiguous)."""
+    ``contrast`` (the coarse scan's second-best score over the best; near 1 means ambiguous);
+    ``shank_points``: the registered points on the shank's own skin (nearer to it than to any other part
+    of the skin, within 5 mm; after voxel down-sampling)."""
 
     flexion: float
     T_world_model: np.ndarray
@@ -72,6 +77,7 @@ class FlexionEstimate:
     inliers: float
     scores: dict = field(default_factory=dict)
     contrast: float = float("nan")
+    shank_points: int = -1
     warnings: list = field(default_factory=list)
     skin: "SkinModel | None" = field(default=None, repr=False)  # the posed-skin model the estimate used
 
@@ -248,8 +254,22 @@ def estimate_flexion(mech: Mechanism, phantom: Phantom, points, T_init=None, coa
     if contrast < 1.02:
         warnings.append(f"the fit hardly changes with flexion (second-best / best score {contrast:.3f}): the view "
                         "shows too little of the flexion")
+    shank = seen_shank_points(sk.at(a), transform_points(T, pts))
+    if shank < MIN_SEEN_SHANK:
+        warnings.append(f"the shank is hardly seen ({shank} depth points on it, after {VOXEL_MM:.0f} mm voxels): the "
+                        "flexion shows only through the knee's outline, so the estimate can be off by a few degrees "
+                        "(e.g. a camera in front of a knee flexed beyond about 50 deg)")
     return FlexionEstimate(flexion=float(a), T_world_model=invert_poses(T), rms=s, inliers=inl, scores=scores,
-                           contrast=float(contrast), warnings=warnings, skin=sk)
+                           contrast=float(contrast), warnings=warnings, skin=sk, shank_points=shank)
+
+
+def seen_shank_points(skin: PosedSkin, points_model, within_mm: float = 5.0) -> int:
+    """How many points (model frame) lie on the shank's own skin: within ``within_mm`` of it and nearer to it
+    than to every other part of the posed skin (part 1 of :meth:`models.phantom.Phantom.skin_parts`)."""
+    p = np.asarray(points_model, float)
+    d = np.abs([q.signed_distance(transform_points(Ti, p)) for (q, _), Ti in zip(skin.parts, skin.inverse)])
+    others = np.delete(d, 1, axis=0).min(axis=0)
+    return int(np.count_nonzero((d[1] < within_mm) & (d[1] < others)))
 
 
 @dataclass

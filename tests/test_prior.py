@@ -103,6 +103,36 @@ def test_a_knee_beyond_the_prior_range_is_flagged(volunteer, scene):
     assert est.at_range_end and "end of the prior's assembly range" in est.warnings[0]
 
 
+def test_a_view_without_the_shank_is_flagged(volunteer, scene):
+    """A camera in front of a knee flexed to 75 deg sees the thigh and the knee but not the shank (which
+    runs back and down, away from it): the estimate says that the flexion shows only through the knee's
+    outline. The counting itself: points on the shank's skin below the knee all count, the thigh's none."""
+    from models.prior import MIN_SEEN_SHANK, SkinModel, seen_shank_points
+    from toolkit.conventions import transform_points
+
+    ph, tf, pts = scene
+    est = estimate_flexion(volunteer, ph, pts)  # the default oblique camera sees the shank
+    assert est.shank_points >= MIN_SEEN_SHANK
+    assert not any("shank is hardly seen" in w for w in est.warnings)
+    cam = default_camera(azimuth_deg=0.0)
+    skin = ph.skin(joint_to_pose(tf), joint_to_pose(volunteer.solve(math.radians(75.0))[1]))
+    front = backproject(DepthNoise().apply(render_depth(skin.vertices, skin.faces, cam), np.random.default_rng(2)),
+                        cam.K, cam.T_world_cam)
+    est = estimate_flexion(volunteer, ph, front)
+    assert est.shank_points < MIN_SEEN_SHANK
+    assert any("shank is hardly seen" in w for w in est.warnings)
+    alpha = math.radians(75.0)
+    posed = SkinModel(volunteer, ph).at(alpha)
+    on_shank = _shank_points(volunteer, ph, alpha, np.eye(4), n=600, noise=0.0)
+    on_shank = on_shank[transform_points(np.linalg.inv(joint_to_pose(tf)), on_shank)[:, 1] < -80.0]
+    assert seen_shank_points(posed, on_shank) == len(on_shank) > 100
+    from trimesh.sample import sample_surface
+
+    t_pts, _ = sample_surface(ph.skin_parts(np.eye(4))[0][0], 500, seed=1)
+    t_pts = t_pts[t_pts[:, 1] > 80.0]
+    assert seen_shank_points(posed, t_pts) == 0 and len(t_pts) > 100
+
+
 def _shank_points(volunteer, ph, alpha, D, n=4000, seed=0, noise=0.3):
     """Points spread over the shank's skin (more than 40 mm below the knee) with the tibia at
     ``T_prior @ D``, in the femur frame."""
