@@ -106,6 +106,28 @@ def test_rotated_stiffness_is_the_tangent_of_the_corotational_force(kind):
     np.testing.assert_allclose(got, expected, atol=1e-7 * np.abs(expected).max())
 
 
+@pytest.mark.parametrize("kind", ["hex", "tet"])
+def test_isotropic_stiffness_blocks_match_b_transpose_d_b(kind):
+    """The element stiffness written out in Lame blocks (isotropic D) against the strain-displacement form
+    V B^T D B summed over the quadrature points; an anisotropic D takes the B form itself."""
+    from models.fem.elements import _b_matrix, gradient_stiffness, hex_gradients, tet_gradients
+
+    X, cells = _mesh(kind, distort=2.0, seed=7)
+    if kind == "hex":
+        dN, w = hex_gradients(X[cells])
+    else:
+        dN, vol = tet_gradients(X[cells])
+        dN, w = dN[:, None], np.abs(vol)[:, None]
+    B = _b_matrix(dN)
+    for D in (elasticity_matrix(5.0, 0.3), elasticity_matrix(1500.0, 0.45)):
+        ref = np.einsum("eq,eqki,kl,eqlj->eij", w, B, D, B)
+        np.testing.assert_allclose(gradient_stiffness(dN, w, D), ref, atol=1e-12 * np.abs(ref).max())
+    D = elasticity_matrix(5.0, 0.3)
+    D[3, 3] *= 2.0  # not isotropic: the general path
+    ref = np.einsum("eq,eqki,kl,eqlj->eij", w, B, D, B)
+    np.testing.assert_allclose(gradient_stiffness(dN, w, D), ref, atol=1e-12 * np.abs(ref).max())
+
+
 def _cantilever(kind, n, L=100.0, h=10.0, E=1000.0, nu=0.3, P=1.0):
     X, cells = _mesh(kind, n=n, size=(L, h, h))
     el = CorotationalElements(X, cells, E, nu)

@@ -76,8 +76,7 @@ def tet_gradients(Xe: np.ndarray):
 def tet_stiffness(X: np.ndarray, cells: np.ndarray, D: np.ndarray) -> np.ndarray:
     """Linear stiffness of tetrahedra, (E, 12, 12): ``V B^T D B``."""
     dN, vol = tet_gradients(X[cells])
-    B = _b_matrix(dN)
-    return np.abs(vol)[:, None, None] * np.einsum("eki,kl,elj->eij", B, D, B)
+    return gradient_stiffness(dN[:, None], np.abs(vol)[:, None], D)
 
 
 def _hex_jacobians(Xe: np.ndarray):
@@ -164,16 +163,45 @@ def hex_gradients(Xe: np.ndarray):
     detJ = det3(J)
     if np.any(detJ <= 0):
         raise KneeInputError("inverted or degenerate hexahedron (non-positive Jacobian) in the grid")
-    dN = np.einsum("eqjk,qak->eqaj", np.linalg.inv(J), dxi)
+    # dN[e, q, a, j] = sum_k dxi[q, a, k] inv(J)[e, q, j, k]: a batched product (einsum's loop is ~5x slower)
+    dN = dxi[None] @ np.swapaxes(np.linalg.inv(J), 2, 3)
     return dN, detJ
+
+
+def _isotropic_lame(D: np.ndarray):
+    """(lambda, mu) when D is isotropic (Voigt, engineering shear), else None."""
+    lam, mu = D[0, 1], D[3, 3]
+    ref = np.zeros((6, 6))
+    ref[:3, :3] = lam
+    ref[[0, 1, 2], [0, 1, 2]] += 2 * mu
+    ref[[3, 4, 5], [3, 4, 5]] = mu
+    return (lam, mu) if np.allclose(D, ref, rtol=1e-12, atol=1e-12 * np.abs(D).max()) else None
+
+
+def gradient_stiffness(dN: np.ndarray, w: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """Stiffness ``sum_q w_q B_q^T D B_q`` (E, 3n, 3n) from shape-function gradients ``dN`` (E, q, n, 3) and
+    quadrature weights ``w`` (E, q). For an isotropic D the blocks are written out,
+    ``K_ab = sum_q w_q (lambda g_a g_b^T + mu g_b g_a^T + mu (g_a . g_b) I)`` with g = grad N at q, from one
+    batched product of the gradients (several times cheaper than forming B); the B^T D B product otherwise."""
+    E, q, n, _ = dN.shape
+    lame = _isotropic_lame(D)
+    if lame is None:
+        B = _b_matrix(dN)  # (E, q, 6, 3n)
+        DB = D @ B * w[:, :, None, None]
+        return (np.swapaxes(B, 2, 3) @ DB).sum(axis=1)
+    lam, mu = lame
+    G = dN.reshape(E, q, 3 * n)                               # rows (a, i): dN_a / dx_i at each point
+    M = (np.swapaxes(G * w[:, :, None], 1, 2) @ G).reshape(E, n, 3, n, 3)  # sum_q w g_a,i g_b,j
+    K = lam * M + mu * np.swapaxes(M, 2, 4)                   # [a, i, b, j]: lam M_aibj + mu M_ajbi
+    trace = np.einsum("eakbk->eab", M)
+    K += mu * trace[:, :, None, :, None] * np.eye(3)[None, None, :, None, :]
+    return K.reshape(E, 3 * n, 3 * n)
 
 
 def hex_stiffness(X: np.ndarray, cells: np.ndarray, D: np.ndarray) -> np.ndarray:
     """Linear stiffness of trilinear hexahedra by 2x2x2 Gauss quadrature, (E, 24, 24)."""
     dN, detJ = hex_gradients(X[cells])
-    B = _b_matrix(dN)  # (E, q, 6, 24)
-    DB = D @ B * detJ[:, :, None, None]
-    return (np.swapaxes(B, 2, 3) @ DB).sum(axis=1)
+    return gradient_stiffness(dN, detJ, D)
 
 
 def _frames(a: np.ndarray, b: np.ndarray) -> np.ndarray:
