@@ -72,3 +72,32 @@ def test_contact_tangent_matrix_matches_its_product_and_lies_in_the_reserve():
     R = c.pattern_reserve()
     used = abs(K) > 0
     assert used.multiply(R > 0).nnz == used.nnz  # every coupling the contact made was reserved
+
+
+def test_reserve_for_a_planned_motion_holds_every_pair_it_brings():
+    """B's layer slides sideways and sinks in three rigid increments (the nodes of its cells moved with it,
+    so that its embedded points move rigidly; A's cells share no node with them): every coupling the
+    contact makes at each increment lies in the reserve computed for those motions beforehand, which the
+    rest reserve alone does not hold (the slide brings B next to cells of A that were far at rest)."""
+    g = _grid(n=(8, 4, 4), size=(120.0, 40.0, 40.0))
+    rng = np.random.default_rng(2)
+    a = np.column_stack([rng.uniform(5, 115, 300), rng.uniform(5, 35, 300), rng.uniform(2, 19, 300)])
+    b = np.column_stack([rng.uniform(5, 40, 150), rng.uniform(5, 35, 150), rng.uniform(31, 38, 150)])
+    c = MappedPenaltyContact(g, a, b, k=50.0, distance=10.0)
+    moves = [np.array([dx, 0.0, dz]) for dx, dz in ((20.0, -4.0), (45.0, -5.0), (70.0, -6.0))]
+    poses = np.stack([np.eye(4)] * 3)
+    poses[:, :3, 3] = moves
+    R = c.pattern_reserve_for_motion(poses) > 0
+    b_nodes = np.unique(g.cells[c.mb.cell])
+    assert not np.intersect1d(b_nodes, g.cells[c.ma.cell]).size
+    used_any = None
+    for d in moves:
+        x = g.X.copy()
+        x[b_nodes] += d
+        np.testing.assert_allclose(c.mb.apply(x), b + d, atol=1e-9)  # B's points moved rigidly
+        c.forces(x)
+        assert c.active > 0
+        used = abs(c.matrix()) > 0
+        assert used.multiply(R).nnz == used.nnz
+        used_any = used if used_any is None else used_any + used
+    assert used_any.multiply(c.pattern_reserve() > 0).nnz < used_any.nnz  # the rest reserve would miss some

@@ -173,6 +173,7 @@ class MappedPenaltyContact:
     def __init__(self, grid, points_a, points_b, k=50.0, distance=10.0):
         self.ma, self.mb = TrilinearMapping(grid, points_a), TrilinearMapping(grid, points_b)
         self._grid_cells = grid.cells
+        self._rest_grid = grid.X
         xc = grid.X[grid.cells]
         self._cell_boxes = (xc.min(axis=1), xc.max(axis=1))
         self.k, self.distance = float(k), float(distance)
@@ -214,7 +215,32 @@ class MappedPenaltyContact:
         lo, hi = self._cell_boxes
         gap = np.maximum(lo[ca][:, None, :] - hi[cb][None, :, :], lo[cb][None, :, :] - hi[ca][:, None, :])
         ia, ib = np.nonzero(np.all(gap <= self.distance + margin, axis=2))
-        nodes = np.concatenate([self._grid_cells[ca[ia]], self._grid_cells[cb[ib]]], axis=1)  # (pairs, 16)
+        return self._cell_pair_pattern(ca[ia], cb[ib])
+
+    def pattern_reserve_for_motion(self, transforms, margin: float = 5.0) -> sp.csr_matrix:
+        """The couplings of the pairs that can switch on while B's points move rigidly by each of
+        ``transforms`` ((K, 4, 4), applied to B's rest points; A's held at rest): the cells of every A point
+        within the activation distance plus ``margin`` of a moved B point, with those of that B point. For
+        a planned motion (the prior's initialisation moves the tibia along the mechanism's path), reserved
+        up front: one pattern, one symbolic analysis, instead of one each time new pairs appear."""
+        pa = self.ma.apply(self._rest_grid)
+        pb = self.mb.apply(self._rest_grid)
+        tree = cKDTree(pa)
+        n_cells = len(self._grid_cells)
+        keys = []
+        for T in np.asarray(transforms, float).reshape(-1, 4, 4):  # a handful of poses
+            near = tree.sparse_distance_matrix(cKDTree(pb @ T[:3, :3].T + T[:3, 3]), self.distance + margin,
+                                               output_type="ndarray")
+            keys.append(self.ma.cell[near["i"]].astype(np.int64) * n_cells + self.mb.cell[near["j"]])
+        keys = np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+        if not keys.size:
+            n3 = 3 * self.ma.J.shape[1]
+            return sp.csr_matrix((n3, n3))
+        return self._cell_pair_pattern(keys // n_cells, keys % n_cells)
+
+    def _cell_pair_pattern(self, cells_a, cells_b) -> sp.csr_matrix:
+        """(3N, 3N) pattern coupling the 16 nodes of each (cell of A, cell of B) pair with each other."""
+        nodes = np.concatenate([self._grid_cells[cells_a], self._grid_cells[cells_b]], axis=1)  # (pairs, 16)
         r = np.repeat(nodes, 16, axis=1).ravel()
         c = np.tile(nodes, (1, 16)).ravel()
         n = self.ma.J.shape[1]

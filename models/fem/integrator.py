@@ -141,6 +141,11 @@ class ImplicitEuler:
         self._system = None
         self._assembler().prime([f.matrix() for f in self.fields])
 
+    def reserve_pattern(self, matrix) -> None:
+        """Entries the matrix will need soon (e.g. contact pairs along a planned motion), added to the kept
+        pattern now: see :meth:`models.fem.system.SystemAssembler.reserve`."""
+        self._assembler().reserve(matrix)
+
     def _assembler(self) -> SystemAssembler:
         n3 = 3 * len(self.m)
         if self._system is None or self._system.n != n3:

@@ -92,6 +92,9 @@ def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: floa
     poses = poses @ invert_poses(T0)
     steps = 0
     target = X.copy()
+    # the contact pairs the tibia's motion along the increments can bring, in the pattern from the start
+    # (one symbolic analysis instead of one per increment that brings new pairs)
+    s.reserve_pattern(model.contact.pattern_reserve_for_motion(np.concatenate([np.eye(4)[None], poses])))
     for T in list(poses) + [poses[-1]] * settle:
         target[mt] = transform_points(T, X[mt])
         s.step(prescribed=(mask, target))

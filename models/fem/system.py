@@ -107,6 +107,13 @@ class SystemAssembler:
         for i, M in enumerate(mats):
             self._positions(i, M)
 
+    def reserve(self, matrix) -> None:
+        """Add the entries of ``matrix`` (n, n; values ignored) to the kept pattern now (one growth, so one
+        new symbolic analysis, instead of one each time some of them first carry values); like entries
+        grown on demand, they stay until the pattern is next rebuilt from scratch."""
+        keys, _ = _lower_keys(sp.csr_matrix(matrix), self.n)
+        self._grow(keys)
+
     def assemble(self, d, matrices, c: float, free=None):
         """``d`` (n,) diagonal, ``matrices`` list of (n, n) sparse, ``c`` their factor; ``free`` (n,) 1/0 per
         DOF (held ones: identity row and column). Returns ``(indptr, indices, data)`` of the lower triangle
