@@ -113,21 +113,25 @@ def test_knee_flexes_towards_the_load(knee_model):
 
 def test_low_rank_springs_enter_the_preconditioner_exactly():
     """Springs kept out of the assembled matrix (low_rank) are added to the factorised preconditioner by
-    the Woodbury identity: right after a refresh it is the exact inverse of the full matrix (springs
-    along their axis), checked against a direct solve of the assembled sum."""
+    the Woodbury identity: right after a refresh it is the exact inverse of the full matrix, checked against
+    a direct solve of the assembled sum; the springs are stretched (rest length 90 % of their length), so
+    their tangent has its transverse part, k (1 - L0/l) across the axis, as well as the axial one."""
     import scipy.sparse as sp
 
     g = _box_grid((6, 2, 2), (60.0, 10.0, 10.0))
     field = GridElasticity(g, E=10.0, nu=0.3)
     a, b = [[5.0, 5.0, 5.0], [12.0, 2.0, 8.0]], [[55.0, 5.0, 5.0], [41.0, 8.0, 3.0]]
-    springs = MappedSprings(g, a, b, k=1000.0, low_rank=True)
+    rest = 0.9 * np.linalg.norm(np.subtract(b, a), axis=1)
+    springs = MappedSprings(g, a, b, k=1000.0, rest_length=rest, low_rank=True)
     clamped = g.X[:, 0] < 1e-9
     s = ImplicitEuler(g.X, np.full(len(g.X), 1e-3), [field, springs], dt=0.05, fixed=clamped)
     s.step()  # forces (spring directions) and the first factorisation
+    springs.forces(s.x)  # the springs' directions and stretch where the full springs are taken below
     s._refresh()
     assert springs.matrix().nnz == 0 and s._woodbury is not None
-    full = MappedSprings(g, a, b, k=1000.0)
+    full = MappedSprings(g, a, b, k=1000.0, rest_length=rest)
     full.forces(s.x)
+    assert np.all(springs._ratio > 0.05)  # stretched: the transverse term is there
     K = field.matrix() + full.matrix()
     A = (sp.diags(np.repeat(s._cm * s.m, 3)) + s._ck * K).tocsr()
     P = sp.diags(s._free)

@@ -126,6 +126,7 @@ class MappedSprings:
         self._K = np.zeros((len(a), 3, 3))
         d = b - a
         self._n = d / np.maximum(np.linalg.norm(d, axis=1), 1e-12)[:, None]
+        self._ratio = np.zeros(len(a))  # 1 - L0 / l of the last forces(), 0 when not stretched
 
     def forces(self, x):
         pa, pb = self.ma.apply(x), self.mb.apply(x)
@@ -136,7 +137,7 @@ class MappedSprings:
         ratio = np.clip(1 - self.L0 / ln, 0, None)
         nn = nrm[:, :, None] * nrm[:, None, :]
         self._K = self.k * (nn + ratio[:, None, None] * (np.eye(3) - nn))
-        self._n = nrm
+        self._n, self._ratio = nrm, ratio
         return self.ma.apply_transpose(f) - self.mb.apply_transpose(f)
 
     def apply(self, p):
@@ -153,13 +154,28 @@ class MappedSprings:
         return (D.T @ blocks @ D).tocsr()
 
     def low_rank_factor(self):
-        """U (3N, S) with U U^T the springs' axial stiffness k D^T n n^T D (the transverse term of a
-        stretched spring, k (1 - L0/l), is left to the iterations); None unless ``low_rank``."""
+        """U (3N, r) with U U^T the springs' whole tangent, ``D^T K D`` (K per spring: k n n^T, plus
+        k (1 - L0/l) (I - n n^T) when stretched): per spring an axial column sqrt(k) D^T n and, when
+        stretched, two transverse ones sqrt(k (1 - L0/l)) D^T t (t spanning the plane normal to n), at the
+        directions of the last forces(). The transverse term matters: 1000 N/mm links stretched by a few
+        per cent are tens of N/mm across, more than the tissue. None unless ``low_rank``."""
         if not self.low_rank:
             return None
         D = (self.mb.J - self.ma.J).T.toarray()  # (N, S)
-        U = (D[:, None, :] * self._n.T[None, :, :]).reshape(-1, len(self._n))  # (3N, S), directions of the last forces()
-        return np.sqrt(self.k) * U
+        n = self._n
+        # two unit vectors normal to each n: cross with the axis least aligned with it, then n x that
+        helper = np.eye(3)[np.argmin(np.abs(n), axis=1)]
+        t1 = np.cross(n, helper)
+        t1 /= np.linalg.norm(t1, axis=1)[:, None]
+        t2 = np.cross(n, t1)
+        stretched = self._ratio > 0
+        dirs = [np.sqrt(self.k) * n]
+        if stretched.any():
+            w = np.sqrt(self.k * self._ratio[stretched])[:, None]
+            dirs += [w * t1[stretched], w * t2[stretched]]
+        which = np.concatenate([np.arange(len(n))] + [np.nonzero(stretched)[0]] * (len(dirs) - 1))
+        V = np.vstack(dirs)  # (r, 3): each column's direction, scaled
+        return (D[:, None, which] * V.T[None, :, :]).reshape(-1, len(which))  # (3N, r)
 
 
 class MappedPenaltyContact:
