@@ -60,6 +60,9 @@ MIN_SHANK_POINTS = 150
 #: Fewest registered points on the shank's own skin (nearest to it, within 5 mm) below which the estimate
 #: warns that the flexion is seen only through the knee's outline.
 MIN_SEEN_SHANK = 100
+#: The shank's index among the skin's parts (:meth:`models.phantom.Phantom.skin_parts`: thigh, shank, knee,
+#: patella).
+SHANK = 1
 
 
 @dataclass
@@ -111,6 +114,11 @@ class PosedSkin:
         if far.size:
             out[far] = np.min([q.signed_distance(p[far]) for (q, _), p in zip(self.parts, local)], axis=0)
         return out
+
+    def part_distances(self, points) -> np.ndarray:
+        """(parts, P): each part's signed distance at every point (no bounding-box shortcut)."""
+        points = np.asarray(points, float)
+        return np.array([q.signed_distance(transform_points(Ti, points)) for (q, _), Ti in zip(self.parts, self.inverse)])
 
     def inside_part(self, i: int, points) -> np.ndarray:
         """(P,) bool: the points lie inside part ``i`` (ray parity, much cheaper than a distance)."""
@@ -265,11 +273,10 @@ def estimate_flexion(mech: Mechanism, phantom: Phantom, points, T_init=None, coa
 
 def seen_shank_points(skin: PosedSkin, points_model, within_mm: float = 5.0) -> int:
     """How many points (model frame) lie on the shank's own skin: within ``within_mm`` of it and nearer to it
-    than to every other part of the posed skin (part 1 of :meth:`models.phantom.Phantom.skin_parts`)."""
-    p = np.asarray(points_model, float)
-    d = np.abs([q.signed_distance(transform_points(Ti, p)) for (q, _), Ti in zip(skin.parts, skin.inverse)])
-    others = np.delete(d, 1, axis=0).min(axis=0)
-    return int(np.count_nonzero((d[1] < within_mm) & (d[1] < others)))
+    than to every other part of the posed skin."""
+    d = np.abs(skin.part_distances(points_model))
+    others = np.delete(d, SHANK, axis=0).min(axis=0)
+    return int(np.count_nonzero((d[SHANK] < within_mm) & (d[SHANK] < others)))
 
 
 @dataclass
@@ -384,12 +391,11 @@ def correct_tibia(mech: Mechanism, phantom: Phantom, points_model, alpha: float,
     kept (stated in ``note``)."""
     sk = skin or SkinModel(mech, phantom)
     posed = sk.at(alpha)
-    T_prior = posed.parts[1][1]
-    shank = posed.parts[1][0]
+    T_prior = posed.parts[SHANK][1]
+    shank = posed.parts[SHANK][0]
     pts = voxel_downsample(np.asarray(points_model, float), VOXEL_MM)
     # the other parts stay where the prior has them: they only decide which points belong to the shank
-    others = np.min([q.signed_distance(transform_points(Ti, pts))
-                     for i, ((q, _), Ti) in enumerate(zip(posed.parts, posed.inverse)) if i != 1], axis=0)
+    others = np.delete(posed.part_distances(pts), SHANK, axis=0).min(axis=0)
     free = [0, 2, 3, 4, 5]  # rotation about x and z, translation; the axial rotation (y) is not seen
     prior_w = np.array([math.radians(sigma_deg) ** -2] * 2 + [sigma_mm ** -2] * 3)
     xi = np.zeros(6)

@@ -36,7 +36,6 @@ class _Scatter:
             gather.sum_duplicates()
         self.G = gather             # (E n 3, 3N): element values from node values
         self.S = gather.T.tocsr()   # (3N, E n 3): node values from element values
-        self.cells = cells
         self.shape = (E, n, 3)
 
     def gather(self, p):
