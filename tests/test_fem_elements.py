@@ -128,6 +128,33 @@ def test_isotropic_stiffness_blocks_match_b_transpose_d_b(kind):
     np.testing.assert_allclose(gradient_stiffness(dN, w, D), ref, atol=1e-12 * np.abs(ref).max())
 
 
+def test_shared_stiffness_products_match_each_elements_own():
+    """stiffness_product() multiplies a regular grid's cells group by group (one shared matrix per cell
+    shape, times the cell's weight): against each element's own matrix, with weights, a dropped element
+    and after a rebase on a deformed pose (every cell its own shape: no groups, the batched product)."""
+    from models.fem.elements import shared_stiffness_groups
+
+    X, hexes = box_hexahedra((6, 4, 3), (60.0, 40.0, 30.0))
+    X = X.copy()
+    X[:, 0] = X[:, 0] ** 1.3  # graded along x: one cell shape per layer
+    weights = np.random.default_rng(2).uniform(0.2, 1.0, len(hexes))
+    el = CorotationalElements(X, hexes, 3.0, 0.3, weights=weights)
+    el.K[5] = 0.0  # a dropped cell
+    u = np.random.default_rng(3).normal(size=(len(hexes), 24))
+    own = np.einsum("eij,ej->ei", el.K, u)
+    groups = shared_stiffness_groups(el.K)
+    assert groups is not None and len(groups[2]) == 6 + 1  # six cell shapes along x, and the zero matrix
+    np.testing.assert_allclose(el.stiffness_product(u), own, atol=1e-12 * np.abs(own).max())
+    moved = X + np.random.default_rng(4).normal(scale=0.5, size=X.shape)
+    el.rebase(moved)
+    assert shared_stiffness_groups(el.K) is None
+    own = np.einsum("eij,ej->ei", el.K, u)
+    np.testing.assert_allclose(el.stiffness_product(u), own, atol=1e-12 * np.abs(own).max())
+    # a tetrahedral mesh of distinct shapes: no groups either
+    Xt, tets = _mesh("tet", distort=2.0)
+    assert shared_stiffness_groups(CorotationalElements(Xt, tets, 3.0, 0.3).K) is None
+
+
 def _cantilever(kind, n, L=100.0, h=10.0, E=1000.0, nu=0.3, P=1.0):
     X, cells = _mesh(kind, n=n, size=(L, h, h))
     el = CorotationalElements(X, cells, E, nu)

@@ -231,6 +231,33 @@ def hex_frames(xe: np.ndarray) -> np.ndarray:
     return _frames(e[:, 0], e[:, 1])
 
 
+def shared_stiffness_groups(K: np.ndarray, max_groups: float = 0.125):
+    """Groups of element matrices ``K`` (E, m, m) that are one shared symmetric matrix times a positive
+    factor each, as ``(order, bounds, shared, scale)``: the elements sorted by group (``order``, with
+    group g at ``order[bounds[g]:bounds[g + 1]]``), each group's shared matrix, and the sorted elements'
+    factors (E, 1); zero matrices (dropped elements) form a group of their own. None when the matrices
+    fall into more than ``max_groups`` times E groups (nothing to share), or when a matrix differs from its
+    group's shared one times its factor by more than 1e-12 of its size."""
+    E = len(K)
+    if E == 0:
+        return None
+    flat = K.reshape(E, -1)
+    size = np.abs(flat).max(axis=1)
+    scale = np.where(size > 0, size, 1.0)
+    key = np.round(flat / scale[:, None] * 1e9).astype(np.int64)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    if len(first) > max(1, max_groups * E):
+        return None
+    shared = flat[first] / scale[first, None]
+    if np.abs(flat - scale[:, None] * shared[inverse]).max(initial=0.0) > 1e-12 * size.max():
+        return None
+    order = np.argsort(inverse, kind="stable")
+    bounds = np.searchsorted(inverse[order], np.arange(len(first) + 1))
+    m = K.shape[1]
+    return order, bounds, [np.ascontiguousarray(S.reshape(m, m)) for S in shared], scale[order, None]
+
+
 class CorotationalElements:
     """A set of co-rotational elements of one kind sharing a node array.
 
@@ -269,11 +296,35 @@ class CorotationalElements:
         self._F0t = np.ascontiguousarray(np.swapaxes(self._F0, 1, 2))
         self.R = np.broadcast_to(np.eye(3), (len(self.cells), 3, 3)).copy()
         self.alive = np.ones(len(self.cells), bool)  # False for elements dropped by :meth:`rebase`
+        self._groups_of = self._groups = None  # stiffness_product()'s groups, and the K they were found for
 
     @property
     def R(self) -> np.ndarray:
         """Element rotations (E, 3, 3), rest to now."""
         return self._R
+
+    def stiffness_product(self, u: np.ndarray) -> np.ndarray:
+        """``K_e u_e`` for every element, ``u`` (E, 3n) -> (E, 3n).
+
+        Elements whose stiffness is one shared matrix times a factor (a regular grid's cells: one per
+        cell shape, scaled by the boundary cells' weights) are multiplied group by group, one matrix
+        product of the group's rows with the shared matrix each: several times cheaper than a batched
+        product of E small matrices. Otherwise (e.g. a bone's tetrahedra, or a grid rebased on a deformed
+        pose) the batched product."""
+        if self._groups_of is not self.K:
+            self._groups = shared_stiffness_groups(self.K)
+            self._groups_of = self.K
+        if self._groups is None:
+            return (self.K @ u[:, :, None])[:, :, 0]
+        order, bounds, shared, scale = self._groups
+        us = u[order]
+        out = np.empty_like(us)
+        for g, Kg in enumerate(shared):  # K_g symmetric: the rows u^T K_g are (K_g u)^T
+            np.matmul(us[bounds[g]:bounds[g + 1]], Kg, out=out[bounds[g]:bounds[g + 1]])
+        out *= scale
+        res = np.empty_like(out)
+        res[order] = out
+        return res
 
     @R.setter
     def R(self, value) -> None:
@@ -341,10 +392,9 @@ class CorotationalElements:
         if corotational:
             R = self.update_rotations(x, xe)
             u = xe @ R - Xe  # rows: (R^T x_a)^T - X_a
-            f = (self.K @ u.reshape(E, 3 * n, 1)).reshape(E, n, 3)
+            f = self.stiffness_product(u.reshape(E, 3 * n)).reshape(E, n, 3)
             return -(f @ self.Rt)
-        u = (xe - Xe).reshape(E, 3 * n, 1)
-        return -(self.K @ u).reshape(E, n, 3)
+        return -self.stiffness_product((xe - Xe).reshape(E, 3 * n)).reshape(E, n, 3)
 
     def forces(self, x: np.ndarray, corotational: bool = True) -> np.ndarray:
         """Internal forces gathered on the nodes, (N, 3)."""

@@ -48,9 +48,8 @@ class _Scatter:
 def _apply_corot(el: CorotationalElements, pe: np.ndarray) -> np.ndarray:
     """R K R^T applied to element vectors pe (E, n, 3)."""
     E, n = el.cells.shape
-    loc = (pe @ el.R).reshape(E, 3 * n, 1)
-    kl = (el.K @ loc).reshape(E, n, 3)
-    return kl @ el.Rt
+    loc = (pe @ el.R).reshape(E, 3 * n)
+    return el.stiffness_product(loc).reshape(E, n, 3) @ el.Rt
 
 
 class GridElasticity:
