@@ -184,3 +184,12 @@ def test_compare_kinematics_only(tmp_path):
 def test_compare_bad_input(tmp_path, args, msg):
     assert_clean_error(run("compare", "volunteer", "--out", tmp_path / "c", *args), msg)
     assert not (tmp_path / "c").exists()
+
+
+def test_prior_benchmark_refuses_a_repeat_count_below_one():
+    """scripts/bench_prior.py checks --repeat before any work: a clear one-line error and exit code 2."""
+    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_prior.py"
+    p = subprocess.run([sys.executable, str(script), "--repeat", "0"], capture_output=True, text=True,
+                       env=dict(os.environ, CI="1"), timeout=120)
+    assert p.returncode == 2 and "Traceback" not in p.stderr
+    assert p.stderr.strip().splitlines()[-1] == "bench_prior: --repeat must be at least 1"

@@ -303,6 +303,19 @@ class CorotationalElements:
         """Element rotations (E, 3, 3), rest to now."""
         return self._R
 
+    @R.setter
+    def R(self, value) -> None:
+        self._R = np.asarray(value, float)
+        self._Rt = None
+
+    @property
+    def Rt(self) -> np.ndarray:
+        """The rotations' transposes, (E, 3, 3) contiguous (kept until the rotations change: products with
+        a transposed view cost about three times as much)."""
+        if self._Rt is None:
+            self._Rt = np.ascontiguousarray(np.swapaxes(self._R, 1, 2))
+        return self._Rt
+
     def stiffness_product(self, u: np.ndarray) -> np.ndarray:
         """``K_e u_e`` for every element, ``u`` (E, 3n) -> (E, 3n).
 
@@ -310,7 +323,8 @@ class CorotationalElements:
         cell shape, scaled by the boundary cells' weights) are multiplied group by group, one matrix
         product of the group's rows with the shared matrix each: several times cheaper than a batched
         product of E small matrices. Otherwise (e.g. a bone's tetrahedra, or a grid rebased on a deformed
-        pose) the batched product."""
+        pose) the batched product. The groups are found again whenever ``K`` is replaced (as :meth:`rebase`
+        does); ``K`` is not to be edited in place once products have been taken."""
         if self._groups_of is not self.K:
             self._groups = shared_stiffness_groups(self.K)
             self._groups_of = self.K
@@ -325,19 +339,6 @@ class CorotationalElements:
         res = np.empty_like(out)
         res[order] = out
         return res
-
-    @R.setter
-    def R(self, value) -> None:
-        self._R = np.asarray(value, float)
-        self._Rt = None
-
-    @property
-    def Rt(self) -> np.ndarray:
-        """The rotations' transposes, (E, 3, 3) contiguous (kept until the rotations change: products with
-        a transposed view cost about three times as much)."""
-        if self._Rt is None:
-            self._Rt = np.ascontiguousarray(np.swapaxes(self._R, 1, 2))
-        return self._Rt
 
     @property
     def n_nodes_per_element(self) -> int:
