@@ -27,8 +27,7 @@ A frame is returned as its pose in image space, ``T_image_bone`` (4, 4): bone co
 from __future__ import annotations
 
 import numpy as np
-
-from toolkit.errors import KneeInputError
+from knee.foundations.errors import KneeInputError
 
 FEMUR_LANDMARKS = ("LE", "ME", "PAL", "HIP")
 TIBIA_LANDMARKS = ("LIT", "MIT", "PMP", "PLP", "LM", "MM")
@@ -59,7 +58,7 @@ def _frame(origin, y_dir, z_hint, what):
 
 
 def femur_frame(lm) -> np.ndarray:
-    """``T_image_femur`` from a :class:`toolkit.imaging.Markups` (or a dict of label -> (3,))."""
+    """``T_image_femur`` from a :class:`knee.foundations.imaging.Markups` (or a dict of label -> (3,))."""
     le, me, pal, hip = (_get(lm, k) for k in FEMUR_LANDMARKS)
     o = 0.5 * (le + me)
     T = _frame(o, hip - o, le - me, "femur")

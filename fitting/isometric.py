@@ -7,10 +7,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from toolkit.conventions import joint_to_pose
-from toolkit.errors import KneeInputError
-from toolkit.geometry import least_varying_pair
+from knee.foundations.conventions import joint_to_pose
+from knee.foundations.errors import KneeInputError
+from knee.foundations.geometry import least_varying_pair
 
 
 @dataclass

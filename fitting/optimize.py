@@ -17,16 +17,26 @@ from the mechanism's CasADi sensitivities, chained through the two maps above.
 
 from __future__ import annotations
 
-import sys
 import time
 from dataclasses import dataclass
 
 import numpy as np
+from knee.foundations.errors import KneeInputError
+from knee.models.mechanism.params import (
+    LINK_FEMUR,
+    LINK_LENGTH,
+    LINK_TIBIA,
+    N_LINKS,
+    MechanismParams,
+    link_entries,
+)
+from knee.models.mechanism.solver import (
+    Mechanism,
+    dense_grid,
+    quick_tf_sweep,
+    tf_sensitivities,
+)
 from scipy.optimize import differential_evolution, least_squares
-
-from models.mechanism.params import LINK_SIZE, MechanismParams
-from models.mechanism.solver import Mechanism, dense_grid, quick_tf_sweep, tf_sensitivities
-from toolkit.errors import KneeInputError
 
 REJECTED = 1e3  # residual (deg or mm) given to every component of a rejected candidate
 
@@ -82,14 +92,14 @@ def perturb_endpoints(params: MechanismParams, low: float = 0.5, high: float = 2
     [low, high] mm (a first estimate within the paper's 2 mm of the truth)."""
     rng = np.random.default_rng(seed)
     v = params.to_vector().copy()
-    for i in range(5):
-        for part in (0, 3):
+    for i in range(N_LINKS):
+        for part in (LINK_FEMUR, LINK_TIBIA):
             d = rng.normal(size=3)
-            v[LINK_SIZE * i + part:LINK_SIZE * i + part + 3] += d * rng.uniform(low, high) / np.linalg.norm(d)
+            v[link_entries(i, part)] += d * rng.uniform(low, high) / np.linalg.norm(d)
     return params.with_vector(v)
 
 
-def _ball(w, radius):
+def bounded_ball(w, radius):
     """Offsets (k, d) in the open ball of ``radius`` from unconstrained w (k, d), and d offset / d w
     (k, d, d)."""
     r = np.linalg.norm(w, axis=1)
@@ -169,13 +179,12 @@ class TFFit(MotionFit):
     # -- parameter maps ------------------------------------------------------------------------
     def params_vector(self, w) -> np.ndarray:
         w = np.asarray(w, float)
-        off, _ = _ball(w[:30].reshape(10, 3), self.radius)
+        off, _ = bounded_ball(w[:30].reshape(10, 3), self.radius)
         p = self.p0.copy()
-        for i in range(5):
-            o = i * LINK_SIZE
-            p[o:o + 3] += off[2 * i]
-            p[o + 3:o + 6] += off[2 * i + 1]
-            p[o + 9] += self.length_range * np.tanh(w[30 + i])
+        for i in range(N_LINKS):
+            p[link_entries(i, LINK_FEMUR)] += off[2 * i]
+            p[link_entries(i, LINK_TIBIA)] += off[2 * i + 1]
+            p[link_entries(i, LINK_LENGTH)] += self.length_range * np.tanh(w[30 + i])
         return p
 
     def params(self, w) -> MechanismParams:
@@ -184,13 +193,12 @@ class TFFit(MotionFit):
     def _dparams_dw(self, w) -> np.ndarray:
         """d(flat parameter vector)/dw, (N_PARAMS, 35)."""
         w = np.asarray(w, float)
-        _, Jb = _ball(w[:30].reshape(10, 3), self.radius)
+        _, Jb = bounded_ball(w[:30].reshape(10, 3), self.radius)
         D = np.zeros((self.p0.size, 35))
-        for i in range(5):
-            o = i * LINK_SIZE
-            D[o:o + 3, 6 * i:6 * i + 3] = Jb[2 * i]
-            D[o + 3:o + 6, 6 * i + 3:6 * i + 6] = Jb[2 * i + 1]
-            D[o + 9, 30 + i] = self.length_range / np.cosh(w[30 + i]) ** 2
+        for i in range(N_LINKS):
+            D[link_entries(i, LINK_FEMUR), 6 * i:6 * i + 3] = Jb[2 * i]
+            D[link_entries(i, LINK_TIBIA), 6 * i + 3:6 * i + 6] = Jb[2 * i + 1]
+            D[link_entries(i, LINK_LENGTH), 30 + i] = self.length_range / np.cosh(w[30 + i]) ** 2
         return D
 
     # -- objective -----------------------------------------------------------------------------
@@ -269,28 +277,16 @@ def two_stage(prob, n_var: int, seed: int = 0, global_stage: bool = True, popsiz
     return best_w, cost_first, cost_global
 
 
-def _stderr_progress(enabled: bool):
-    if not enabled:
-        return None
-
-    def say(frac, text):
-        print(f"\r  {text}".ljust(72), end="", file=sys.stderr, flush=True)
-        if frac >= 1.0:
-            print(file=sys.stderr)
-
-    return say
-
-
 def fit_tf(first: MechanismParams, motion: Motion, seed: int = 0, global_stage: bool = True,
            popsize: int = 12, maxiter: int = 15, w_box: float = 2.5, local_starts: int = 6,
-           progress=False, **kwargs) -> FitResult:
+           progress=None, **kwargs) -> FitResult:
     """Fit the TF group of ``first`` to ``motion`` (see the module docstring and :func:`two_stage`).
 
-    ``progress``: False, True (a line on standard error) or a callable ``(fraction, text)``.
+    ``progress``: None or a callable ``progress(fraction, text)`` called as the work advances.
     """
     t0 = time.perf_counter()
     prob = TFFit(first, motion, **kwargs)
-    say = progress if callable(progress) else _stderr_progress(bool(progress))
+    say = progress or (lambda f, t: None)
     w, cost_first, cost_global = two_stage(prob, 35, seed, global_stage, popsize, maxiter, w_box, local_starts,
                                            say, "TF fit")
     if not prob.model_motion(w)[1]:

@@ -1,7 +1,7 @@
 """Bounded optimisation of the patello-femoral group (seed 002, section 2.4), after the TF group.
 
 The PF motion depends on the TF geometry (the tendon pulls on the tibia) but the TF motion does not
-depend on the PF group, so the fit runs in two blocks: the TF group first (:func:`fitting.optimize.fit_tf`,
+depend on the PF group, so the fit runs in two blocks: the TF group first (:func:`knee.fitting.optimize.fit_tf`,
 35 parameters against the five TF components), then the PF group with the TF group fixed, against the
 six PF components. The PF group's 17 parameters, bounded as in the paper:
 
@@ -22,13 +22,30 @@ import math
 import time
 
 import numpy as np
+from knee.fitting.optimize import (
+    NOISE_SD,
+    FitResult,
+    Motion,
+    MotionFit,
+    bounded_ball,
+    dense_grid,
+    two_stage,
+)
+from knee.foundations.errors import AssemblyError, KneeInputError
+from knee.models.mechanism.params import (
+    PF_AXIS_FEMUR,
+    PF_AXIS_PATELLA,
+    PF_LAMBDA0,
+    PF_LAMBDA1,
+    PF_POINT_FEMUR,
+    PF_POINT_PATELLA,
+    PF_TENDON_LENGTH,
+    PF_TENDON_PATELLA,
+    PF_TENDON_TIBIA,
+    MechanismParams,
+)
+from knee.models.mechanism.solver import Mechanism, pf_sensitivities, quick_pf_sweep
 
-from fitting.optimize import NOISE_SD, FitResult, Motion, MotionFit, _ball, _stderr_progress, dense_grid, two_stage
-from models.mechanism.params import N_LINKS, LINK_SIZE, MechanismParams
-from models.mechanism.solver import Mechanism, pf_sensitivities, quick_pf_sweep
-from toolkit.errors import AssemblyError, KneeInputError
-
-PF0 = N_LINKS * LINK_SIZE
 AXIS_DEG = 5.0
 AXIS_POINT_MM = 5.0
 TENDON_MM = 2.0
@@ -77,10 +94,10 @@ class PFFit(MotionFit):
         except AssemblyError as e:
             raise KneeInputError(f"the PF first estimate does not assemble: {e}") from None
         self.x_ref0, self.psi_ref0 = mech.x_ref.copy(), float(mech.psi_ref)
-        self.Bf = _tangent_basis(self.p0[PF0:PF0 + 3])
-        self.Bp = _tangent_basis(self.p0[PF0 + 6:PF0 + 9])
-        self.nf0 = self.p0[PF0:PF0 + 3] / np.linalg.norm(self.p0[PF0:PF0 + 3])
-        self.np0 = self.p0[PF0 + 6:PF0 + 9] / np.linalg.norm(self.p0[PF0 + 6:PF0 + 9])
+        self.Bf = _tangent_basis(self.p0[PF_AXIS_FEMUR])
+        self.Bp = _tangent_basis(self.p0[PF_AXIS_PATELLA])
+        self.nf0 = self.p0[PF_AXIS_FEMUR] / np.linalg.norm(self.p0[PF_AXIS_FEMUR])
+        self.np0 = self.p0[PF_AXIS_PATELLA] / np.linalg.norm(self.p0[PF_AXIS_PATELLA])
         self.evaluations = 0
         self._cache = (None, None)
 
@@ -91,18 +108,21 @@ class PFFit(MotionFit):
         D = np.zeros((p.size, self.n_var))
         t = math.tan(math.radians(AXIS_DEG))
         # axes
-        for k, (o, n0, B) in enumerate(((PF0, self.nf0, self.Bf), (PF0 + 6, self.np0, self.Bp))):
-            v, Jv = _ball(w[None, 4 * k:4 * k + 2], t)
-            p[o:o + 3] = n0 + B @ v[0]
-            D[o:o + 3, 4 * k:4 * k + 2] = B @ Jv[0]
-            q, Jq = _ball(w[None, 4 * k + 2:4 * k + 4], AXIS_POINT_MM)
-            p[o + 3:o + 5] += q[0]
-            D[o + 3:o + 5, 4 * k + 2:4 * k + 4] = Jq[0]
-        for k, o in enumerate((PF0 + 12, PF0 + 15)):
-            d, Jd = _ball(w[None, 8 + 3 * k:11 + 3 * k], TENDON_MM)
-            p[o:o + 3] += d[0]
-            D[o:o + 3, 8 + 3 * k:11 + 3 * k] = Jd[0]
-        for k, (o, rng) in enumerate(((PF0 + 18, LENGTH_MM), (PF0 + 19, LENGTH_MM), (PF0 + 20, PITCH_MM_PER_RAD))):
+        for k, (axis, point, n0, B) in enumerate(((PF_AXIS_FEMUR, PF_POINT_FEMUR, self.nf0, self.Bf),
+                                                  (PF_AXIS_PATELLA, PF_POINT_PATELLA, self.np0, self.Bp))):
+            v, Jv = bounded_ball(w[None, 4 * k:4 * k + 2], t)
+            p[axis] = n0 + B @ v[0]
+            D[axis, 4 * k:4 * k + 2] = B @ Jv[0]
+            q, Jq = bounded_ball(w[None, 4 * k + 2:4 * k + 4], AXIS_POINT_MM)
+            xy = slice(point.start, point.start + 2)  # the point moves in the sagittal plane (x, y)
+            p[xy] += q[0]
+            D[xy, 4 * k + 2:4 * k + 4] = Jq[0]
+        for k, end in enumerate((PF_TENDON_TIBIA, PF_TENDON_PATELLA)):
+            d, Jd = bounded_ball(w[None, 8 + 3 * k:11 + 3 * k], TENDON_MM)
+            p[end] += d[0]
+            D[end, 8 + 3 * k:11 + 3 * k] = Jd[0]
+        for k, (o, rng) in enumerate(((PF_TENDON_LENGTH, LENGTH_MM), (PF_LAMBDA0, LENGTH_MM),
+                                      (PF_LAMBDA1, PITCH_MM_PER_RAD))):
             p[o] += rng * math.tanh(w[14 + k])
             D[o, 14 + k] = rng / math.cosh(w[14 + k]) ** 2
         return p, D
@@ -144,11 +164,11 @@ PFFitResult = FitResult  # the same fields; ``mae`` (6,): deg x3, mm x3, fitted 
 
 
 def fit_pf(params: MechanismParams, motion: Motion, seed: int = 0, global_stage: bool = True, popsize: int = 10,
-           maxiter: int = 12, w_box: float = 2.5, local_starts: int = 4, progress=False) -> PFFitResult:
+           maxiter: int = 12, w_box: float = 2.5, local_starts: int = 4, progress=None) -> PFFitResult:
     """Fit the PF group of ``params`` (TF group already fitted) to ``motion`` (see the module docstring)."""
     t0 = time.perf_counter()
     prob = PFFit(params, motion)
-    say = progress if callable(progress) else _stderr_progress(bool(progress))
+    say = progress or (lambda f, t: None)
     w, c0, cg = two_stage(prob, prob.n_var, seed, global_stage, popsize, maxiter, w_box, local_starts, say,
                           "PF fit")
     if not prob.model_motion(w)[1]:

@@ -5,10 +5,10 @@
     SUBJECT/
       subject.toml                  name, side, options (below)
       ct/femur.stl tibia.stl patella.stl     CT bone surfaces (STL/PLY/OBJ, mm; SPACE=LPS|RAS comment)
-      ct/landmarks.mrk.json         anatomical landmarks (fitting.frames) and the alignment fiducials
+      ct/landmarks.mrk.json         anatomical landmarks (knee.fitting.frames) and the alignment fiducials
       ct/areas/femur_intercondylar.mrk.json  points of the intercondylar space (helical pitch)
       mri/femur.* tibia.* [patella.*]        MRI surfaces with cartilage
-      mri/landmarks.mrk.json        the alignment fiducials (fitting.frames.FIDUCIALS) in MRI space
+      mri/landmarks.mrk.json        the alignment fiducials (knee.fitting.frames.FIDUCIALS) in MRI space
       mri/areas/<name>.mrk.json     point lists: attachment areas acl_femur, acl_tibia, pcl_femur,
                                     pcl_tibia, mcl_femur, mcl_tibia, tendon_tibia, tendon_patella; articular
                                     regions femur_lateral_condyle, femur_medial_condyle (posterior),
@@ -16,7 +16,7 @@
                                     femur_medial_trochlea (anterior condyles)
       mri/labels/<bone>.json        optional instead of point lists: {"<name>": [vertex indices into
                                     mri/<bone>.*], ...}
-      motion.csv                    measured TF (and PF) motion (toolkit.imaging.read_motion_csv)
+      motion.csv                    measured TF (and PF) motion (knee.foundations.imaging.read_motion_csv)
       truth.toml                    optional (synthetic subjects): the generating parameter set
 
 ``subject.toml``::
@@ -44,16 +44,19 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-
-from fitting.frames import FIDUCIALS, LANDMARKS
-from toolkit.errors import KneeInputError
-from toolkit.imaging import Markups, MotionFile, find_surface, read_markups, read_motion_csv, read_surface
+from knee.fitting.frames import FIDUCIALS, LANDMARKS
+from knee.foundations.errors import KneeInputError
+from knee.foundations.imaging import (
+    Markups,
+    MotionFile,
+    find_surface,
+    read_markups,
+    read_motion_csv,
+    read_surface,
+)
 
 FORMAT_NAME = "knee-subject"
 LIGAMENTS = ("acl", "pcl", "mcl")
-CONTACT_REGIONS = ("femur_lateral_condyle", "femur_medial_condyle", "tibia_lateral_facet", "tibia_medial_facet")
-TROCHLEA_REGIONS = ("femur_lateral_trochlea", "femur_medial_trochlea")
-TENDON_AREAS = ("tendon_tibia", "tendon_patella")
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """A synthetic subject folder generated from a mechanism parameter set (``knee synth-subject``).
 
-It holds everything :mod:`fitting.subject` reads, made from the procedural phantom of the parameter set
-(:mod:`models.phantom`), so that the fitting pipeline can be run, and its recovery measured, against a
+It holds everything :mod:`knee.fitting.subject` reads, made from the procedural phantom of the parameter set
+(:mod:`knee.models.phantom`), so that the fitting pipeline can be run, and its recovery measured, against a
 known truth:
 
 * ``ct/``: bone surfaces of femur, tibia and patella with the cartilage set back by 2 mm (subchondral
@@ -12,7 +12,7 @@ known truth:
   identification noise; the ligament and patellar-tendon attachment areas and the
   articular regions for the sphere fits (markups point lists). All markups are written in LPS.
 * ``motion.csv``: the measured TF and PF motion, 0 to 120 deg, with fluoroscopy-like noise
-  (:data:`fitting.optimize.NOISE_SD`).
+  (:data:`knee.fitting.optimize.NOISE_SD`).
 * ``truth.toml``: the generating parameter set (only synthetic subjects have it; the fit report then
   compares the fitted motion with the noise-free truth).
 
@@ -21,7 +21,7 @@ cylinders), so the ligament attachment points are not on the bone surfaces; the 
 point grids (1 mm spacing, 3 mm radius; 4 mm for the tendon) around a centre up to 1 mm from the true
 endpoint, and ``subject.toml`` turns off the projection of the tendon-area centroids onto the surfaces.
 The phantom has no trochlear groove: the intercondylar-space points lie on the plane that gives the
-true helical pitch. The landmarks are placed so that the frames of :mod:`fitting.frames` coincide with
+true helical pitch. The landmarks are placed so that the frames of :mod:`knee.fitting.frames` coincide with
 the phantom's bone frames.
 """
 
@@ -31,15 +31,20 @@ import math
 from pathlib import Path
 
 import numpy as np
-
-from fitting.frames import FIDUCIALS, LANDMARKS
-from fitting.optimize import synthetic_motion
-from models.mechanism import Mechanism
-from models.mechanism.params import load_model, save_toml
-from models.phantom import TROCHLEA_OFFSET, build_phantom, trochlea_radius
-from toolkit.conventions import joint_to_pose, rot_x, rot_y, rot_z, transform_points
-from toolkit.errors import KneeInputError
-from toolkit.imaging import write_markups, write_motion_csv, write_surface
+from knee.fitting.frames import FIDUCIALS, LANDMARKS
+from knee.fitting.optimize import synthetic_motion
+from knee.foundations.conventions import (
+    joint_to_pose,
+    rot_x,
+    rot_y,
+    rot_z,
+    transform_points,
+)
+from knee.foundations.errors import KneeInputError
+from knee.foundations.imaging import write_markups, write_motion_csv, write_surface
+from knee.models.mechanism import Mechanism
+from knee.models.mechanism.params import load_model, save_toml
+from knee.models.phantom import TROCHLEA_OFFSET, build_phantom, trochlea_radius
 
 #: Anatomical (right knee) axes in LPS: x anterior = -P, y proximal = +S, z lateral = -L.
 ANATOMICAL_IN_LPS = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
@@ -96,7 +101,7 @@ def make_subject(out_dir, model: str = "volunteer", seed: int = 0, frames: int =
     if len([lk for lk in params.links if lk.role == "contact" and lk.kind == "distance"]) != 2:
         raise KneeInputError(f"model {params.name!r}: the synthetic subject needs two sphere-sphere contacts")
     if frames < 10:
-        raise KneeInputError(f"--frames must be at least 10, got {frames}")
+        raise KneeInputError(f"the motion needs at least 10 frames, got {frames}")
     rng = np.random.default_rng(seed)
     mech = Mechanism(params)
     lo, hi = (math.degrees(v) for v in mech.assembly_range)
@@ -182,7 +187,7 @@ def make_subject(out_dir, model: str = "volunteer", seed: int = 0, frames: int =
     mri_area("tendon_patella", "patella", _ball_grid(centre(pf.tendon_patella), 4.0))
 
     # ---- intercondylar space (CT): the plane that gives the true pitch (module docstring)
-    tf_ref, pf_ref, _ = mech.solve(pf.reference_flexion)
+    _, pf_ref, _ = mech.solve(pf.reference_flexion)
     d = pf_ref[3:] - pf.point_femur
     d -= (d @ n) * n
     rho = float(np.linalg.norm(d))

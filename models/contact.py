@@ -31,9 +31,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from knee.foundations.errors import KneeInputError
+from knee.models.mechanism.solver import Mechanism
+from knee.models.statics import StaticsResult, solve_statics
 from scipy.optimize import brentq
-
-from toolkit.errors import KneeInputError
 
 
 @dataclass(frozen=True)
@@ -200,13 +201,23 @@ def foundation_closed_form_approach(force, r_femur, r_tibia, surface, cartilage:
     return np.sqrt(np.maximum(np.asarray(force, float), 0.0) / (math.pi * cartilage.foundation_modulus * Rs))
 
 
+@dataclass(frozen=True)
+class FoundationMaps:
+    """The elastic foundation under n loads: ``approach`` (n,) mm, face ``pressure`` (n, faces) MPa on the
+    articular ``cap`` mesh, contact ``area`` (n,) mm² and ``peak`` pressure (n,) MPa."""
+
+    approach: np.ndarray
+    pressure: np.ndarray
+    area: np.ndarray
+    peak: np.ndarray
+    cap: trimesh.Trimesh
+
+
 def foundation_maps(forces, r_femur, r_tibia, surface, cartilage: Cartilage = CARTILAGE, mesh=None,
-                    n_table: int = 160) -> dict:
+                    n_table: int = 160) -> FoundationMaps:
     """The elastic foundation for many compressive loads (N, (n,)) at once: the net force is tabulated
     against the approach once (vectorised over approaches and faces), the approach of each load
-    interpolated, and the face pressures computed for every load together.
-
-    Returns ``{"approach" (n,), "pressure" (n, faces), "area" (n,), "peak" (n,), "cap": mesh}``."""
+    interpolated, and the face pressures computed for every load together."""
     effective_radius(r_femur, r_tibia, surface)  # validates
     mesh = mesh if mesh is not None else condyle_cap(r_femur, subdivisions=5)
     F = np.maximum(np.asarray(forces, float), 0.0)
@@ -219,12 +230,22 @@ def foundation_maps(forces, r_femur, r_tibia, surface, cartilage: Cartilage = CA
                              f"({table[-1]:.0f} N)")
     appr = np.interp(F, table, dl)
     p = cartilage.foundation_modulus * np.maximum(_tibial_depth(c, r_femur, r_tibia, surface, appr)[0], 0.0)
-    return {"approach": appr, "pressure": p, "area": (p > 0) @ A, "peak": p.max(axis=1), "cap": mesh}
+    return FoundationMaps(appr, p, (p > 0) @ A, p.max(axis=1), mesh)
 
 
-def contact_loads(params, statics, cartilage: Cartilage = CARTILAGE, foundation: bool = True) -> dict:
-    """Per condylar contact of ``params``: the compressive force from a statics result (N, (n,)), Hertz, and
-    (with ``foundation``) the elastic-foundation maps of :func:`foundation_maps`."""
+@dataclass(frozen=True)
+class ContactSeries:
+    """One condylar contact over n frames or angles: the compressive ``force`` (n,) N, its Hertz result,
+    and (when computed) the elastic foundation's maps, else None."""
+
+    force: np.ndarray
+    hertz: HertzResult
+    foundation: FoundationMaps | None = None
+
+
+def contact_loads(params, statics, cartilage: Cartilage = CARTILAGE, foundation: bool = True) -> dict[str, ContactSeries]:
+    """Per condylar contact of ``params`` (by link name), its :class:`ContactSeries` from a statics result:
+    the compressive force, Hertz, and (with ``foundation``) :func:`foundation_maps`."""
     out = {}
     for lk in params.links:
         if lk.role != "contact":
@@ -234,10 +255,31 @@ def contact_loads(params, statics, cartilage: Cartilage = CARTILAGE, foundation:
                                  "the condyle radius")
         comp = np.maximum(-statics.force(lk.name), 0.0)
         surf = "plane" if lk.kind == "sphere-plane" else lk.tibia_surface
-        entry = {"force": comp, "hertz": hertz(comp, lk.femur_radius, lk.tibia_radius, surf, cartilage, cartilage)}
-        if foundation:
-            m = foundation_maps(comp, lk.femur_radius, lk.tibia_radius, surf, cartilage)
-            entry.update({"foundation_pressure": m["pressure"], "foundation_peak": m["peak"],
-                          "foundation_area": m["area"], "cap": m["cap"]})
-        out[lk.name] = entry
+        maps = foundation_maps(comp, lk.femur_radius, lk.tibia_radius, surf, cartilage) if foundation else None
+        out[lk.name] = ContactSeries(comp, hertz(comp, lk.femur_radius, lk.tibia_radius, surf, cartilage, cartilage),
+                                     maps)
     return out
+
+
+@dataclass(frozen=True)
+class ContactAlongFlexion:
+    """The contacts under a constant load over flexion: the angles ``flexion_deg`` (n,), the statics and
+    each contact's :class:`ContactSeries` (with the elastic foundation)."""
+
+    flexion_deg: np.ndarray
+    load: float
+    statics: StaticsResult
+    contacts: dict
+
+
+def contact_along_flexion(mech: Mechanism, load: float = 700.0, flexion_deg=None,
+                          cartilage: Cartilage = CARTILAGE) -> ContactAlongFlexion:
+    """Contact force, Hertz and elastic-foundation area and peak pressure at each contact against flexion,
+    under a compressive ``load`` (N) along the tibia's long axis (seed 001 Fig. 3d); by default every 5 deg
+    from 0 (or the assembly range's start) to 120 deg (or its end)."""
+    lo, hi = (math.degrees(v) for v in mech.assembly_range)
+    if flexion_deg is None:
+        flexion_deg = np.arange(max(0.0, math.ceil(lo)), min(120.0, math.floor(hi)) + 1e-9, 5.0)
+    fl = np.asarray(flexion_deg, float)
+    st = solve_statics(mech, np.radians(fl), [0.0, load, 0.0])
+    return ContactAlongFlexion(fl, float(load), st, contact_loads(mech.params, st, cartilage))

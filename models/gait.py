@@ -21,7 +21,7 @@ length from the heel, 0.257, 0.245, 0.124; the patella 0.05 kg (a point-like bod
 
 The ground reaction force acts on the foot at the centre of pressure on the sole. Inverse dynamics
 (RNEA) gives the wrench the femur transmits to the tibia; its negative is the load the knee's five links
-and tendon must balance (:func:`models.statics.solve_statics`), and the contact forces give Hertz and
+and tendon must balance (:func:`knee.models.statics.solve_statics`), and the contact forces give Hertz and
 elastic-foundation pressures per frame.
 
 Pinocchio's Python API has no batched RNEA; the per-frame loop calls its C++ RNEA (about 10 us a frame);
@@ -32,17 +32,18 @@ from __future__ import annotations
 
 import csv
 import math
+import time
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
-
-from models.contact import CARTILAGE, Cartilage, contact_loads
-from models.mechanism.solver import Mechanism
-from models.statics import StaticsResult, solve_statics
-from toolkit.conventions import joint_to_pose
-from toolkit.errors import AssemblyError, KneeInputError
+import pinocchio as pin
+from knee.foundations.conventions import joint_to_pose
+from knee.foundations.errors import AssemblyError, KneeInputError
+from knee.models.contact import CARTILAGE, Cartilage, contact_loads
+from knee.models.mechanism.solver import Mechanism
+from knee.models.statics import StaticsResult, solve_statics
 
 G = 9.81
 REQUIRED = ("time_s", "hip_flexion_deg", "knee_flexion_deg", "ankle_dorsiflexion_deg")
@@ -74,7 +75,7 @@ def read_gait_csv(path, mass: float) -> GaitTrial:
     if not path.is_file():
         raise KneeInputError(f"gait file {path} not found")
     if not (mass > 0 and math.isfinite(mass)):
-        raise KneeInputError(f"--mass must be a positive number of kg, got {mass}")
+        raise KneeInputError(f"the body mass must be a positive number of kg, got {mass}")
     lines = [ln for ln in path.read_text(encoding="utf-8").splitlines() if ln.strip() and not ln.startswith("#")]
     if not lines:
         raise KneeInputError(f"{path}: empty gait file")
@@ -120,7 +121,7 @@ def read_gait_csv(path, mass: float) -> GaitTrial:
 def normative_trial(mass: float = 72.0) -> GaitTrial:
     """The bundled normative cycle (``models/data/gait-normative.csv``; see scripts/make_normative_gait.py
     for what it is and its sources) for a subject of ``mass`` kg."""
-    with resources.as_file(resources.files("models") / "data" / "gait-normative.csv") as p:
+    with resources.as_file(resources.files("knee.models") / "data" / "gait-normative.csv") as p:
         trial = read_gait_csv(p, mass)
     trial.source = "bundled normative cycle (models/data/gait-normative.csv)"
     return trial
@@ -155,7 +156,7 @@ class Anthropometry:
         return 0.039 * self.height
 
 
-def _inertia(pin, m, L, com, radii):
+def _inertia(m, L, com, radii):
     """Segment inertia: radii (sagittal about z, transverse about x, longitudinal about y) x length."""
     rs, rt, rl = (r * L for r in radii)
     I = np.diag([m * rt ** 2, m * rl ** 2, m * rs ** 2])
@@ -178,8 +179,6 @@ def build_limb(mech: Mechanism, anthro: Anthropometry, ankle_in_tibia=None, hip_
     """The chain of the module docstring for a mechanism with a patella. ``ankle_in_tibia`` and
     ``hip_in_femur`` (3,) mm override the ankle centre (tibia frame; default (0, -L_shank, 0)) and the hip
     centre (femur frame; default (0, L_thigh, 0)), e.g. after an osteotomy."""
-    import pinocchio as pin
-
     p = mech.params
     if p.pf is None:
         raise KneeInputError(f"{p.name}: the gait chain needs a model with a patella")
@@ -192,16 +191,16 @@ def build_limb(mech: Mechanism, anthro: Anthropometry, ankle_in_tibia=None, hip_
     # the femur body frame (knee model's frame) sits L_thigh below the hip centre
     hip_c = np.array([0.0, Lt, 0.0]) if hip_in_femur is None else np.asarray(hip_in_femur, float) * 1e-3
     femur_in_hip = pin.SE3(np.eye(3), -hip_c)
-    model.appendBodyToJoint(hip, _inertia(pin, mt, Lt, [0.0, -ct * Lt, 0.0], rt), pin.SE3.Identity())
+    model.appendBodyToJoint(hip, _inertia(mt, Lt, [0.0, -ct * Lt, 0.0], rt), pin.SE3.Identity())
     knee = model.addJoint(hip, pin.JointModelFreeFlyer(), femur_in_hip, "knee")
-    model.appendBodyToJoint(knee, _inertia(pin, ms, Ls, [0.0, -cs * Ls, 0.0], rs), pin.SE3.Identity())
+    model.appendBodyToJoint(knee, _inertia(ms, Ls, [0.0, -cs * Ls, 0.0], rs), pin.SE3.Identity())
     ankle = np.array([0.0, -Ls, 0.0]) if ankle_in_tibia is None else np.asarray(ankle_in_tibia, float) * 1e-3
     ank = model.addJoint(knee, pin.JointModelRZ(), pin.SE3(np.eye(3), ankle), "ankle")
     heel = -0.2 * Lf
-    model.appendBodyToJoint(ank, _inertia(pin, mf, Lf, [heel + cf * Lf, -0.5 * anthro.ankle_height, 0.0], rf),
+    model.appendBodyToJoint(ank, _inertia(mf, Lf, [heel + cf * Lf, -0.5 * anthro.ankle_height, 0.0], rf),
                             pin.SE3.Identity())
     # patella: helical joint on the mechanism's axis (placement from the reference pose)
-    pat, X = _patella_joint(pin, model, hip, femur_in_hip, mech)
+    pat, X = _patella_joint(model, hip, femur_in_hip, mech)
     return Limb(model=model, joints={"hip": hip, "knee": knee, "ankle": ank, "patella": pat}, anthropometry=anthro,
                 ankle_in_tibia=ankle, heel=heel, patella_in_joint=X)
 
@@ -210,14 +209,14 @@ def _patella_frame(mech):
     """Reference pose (R_ref, P_ref) of the patella (femur frame, mm), helical axis n_f and its point
     a = q_f + lambda0 n_f (mm)."""
     pf = mech.params.pf
-    tf_ref, pf_ref = mech.motion_at(np.array([pf.reference_flexion]))
+    _, pf_ref = mech.motion_at(np.array([pf.reference_flexion]))
     T = joint_to_pose(pf_ref[0])
     n = pf.axis_femur / np.linalg.norm(pf.axis_femur)
     a = pf.point_femur + pf.lambda0 * n
     return T[:3, :3], T[:3, 3], n, a
 
 
-def _patella_joint(pin, model, hip, femur_in_hip, mech):
+def _patella_joint(model, hip, femur_in_hip, mech):
     R_ref, P_ref, n, a = _patella_frame(mech)
     axis_local = R_ref.T @ n
     placement = femur_in_hip * pin.SE3(R_ref, a * 1e-3)
@@ -296,9 +295,6 @@ def analyse_gait(mech: Mechanism, trial: GaitTrial, anthro: Anthropometry | None
                  cartilage: Cartilage = CARTILAGE, ankle_in_tibia=None, foundation: bool = True,
                  hip_in_femur=None) -> GaitResult:
     """Kinematics, inverse dynamics, statics and contact pressures for every frame of ``trial``."""
-    import time
-
-    import pinocchio as pin
 
     t0 = time.perf_counter()
     anthro = anthro or Anthropometry()

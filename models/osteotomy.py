@@ -17,7 +17,7 @@ everything is recomputed:
 * the kinematics over flexion and the contact pressures in gait, before and after.
 
 The hip and ankle centres default to the femoral and tibial long axes at the lengths of
-:class:`models.gait.Anthropometry` (thigh 0.245 H, shank 0.246 H); pass measured ones when you have them.
+:class:`knee.models.gait.Anthropometry` (thigh 0.245 H, shank 0.246 H); pass measured ones when you have them.
 """
 
 from __future__ import annotations
@@ -27,10 +27,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import trimesh
-
-from models.mechanism.params import MechanismParams
-from models.mechanism.solver import Mechanism
-from toolkit.errors import AssemblyError, KneeInputError
+from knee.foundations.conventions import joint_to_pose
+from knee.foundations.errors import AssemblyError, KneeInputError
+from knee.foundations.surfaces import SurfaceQuery
+from knee.models.gait import Anthropometry, GaitResult, GaitTrial, analyse_gait
+from knee.models.mechanism.params import InitialPose, MechanismParams
+from knee.models.mechanism.solver import Mechanism, quick_tf_sweep
+from knee.models.phantom import Phantom, build_phantom
 
 FUJISAWA = 62.5
 
@@ -51,8 +54,6 @@ class Cut:
 def default_cut(bone: str, mesh: trimesh.Trimesh, angle: float) -> Cut:
     """A transverse cut 35 mm below the joint line (tibia; 60 mm above it for the femur) with the hinge
     8 mm inside the lateral cortex of that cross-section, along x (anterior)."""
-    from models.fem.geometry import SurfaceQuery
-
     y = -35.0 if bone == "tibia" else 60.0
     g = np.arange(-60.0, 60.0 + 1e-9, 1.0)
     X, Z = np.meshgrid(g, g, indexing="ij")
@@ -90,20 +91,18 @@ def wedge_transform(cut: Cut) -> np.ndarray:
 def validate_cut(cut: Cut, mesh: trimesh.Trimesh) -> None:
     """Clear errors for a plane that misses the bone, a hinge outside it, or a bad angle."""
     if cut.bone not in ("tibia", "femur"):
-        raise KneeInputError(f"--bone must be tibia or femur, got {cut.bone!r}")
+        raise KneeInputError(f"the cut bone must be tibia or femur, got {cut.bone!r}")
     for name, v in (("plane normal", cut.plane_normal), ("hinge axis", cut.hinge_axis)):
         if not (np.all(np.isfinite(v)) and np.linalg.norm(v) > 1e-9):
             raise KneeInputError(f"the {name} must be a finite non-zero vector")
     if not (math.isfinite(cut.angle) and abs(cut.angle) <= 30.0):
-        raise KneeInputError(f"--angle must be within +-30 deg, got {cut.angle}")
+        raise KneeInputError(f"the wedge angle must be within +-30 deg, got {cut.angle}")
     n = cut.plane_normal / np.linalg.norm(cut.plane_normal)
     s = (mesh.vertices - cut.plane_point) @ n
     if s.min() >= 0 or s.max() <= 0:
         raise KneeInputError(f"the cutting plane misses the {cut.bone} (all of the bone lies on one side)")
     if (np.zeros(3) - cut.plane_point) @ n == 0:
         raise KneeInputError("the cutting plane passes through the knee centre; no fragment to move")
-    from models.fem.geometry import SurfaceQuery
-
     outside = float(SurfaceQuery.of(mesh).signed_distance(np.asarray(cut.hinge_point, float)[None])[0])
     if outside > 1.0:
         raise KneeInputError(f"the hinge point lies {outside:.1f} mm outside the {cut.bone}")
@@ -129,11 +128,9 @@ def apply_cut(params: MechanismParams, cut: Cut, release=()) -> tuple[MechanismP
     names = [lk.name for lk in params.links]
     for r in release:
         if r not in names or params.link(r).role != "ligament":
-            raise KneeInputError(f"--release {r}: not a ligament link of {params.name} ({', '.join(names)})")
+            raise KneeInputError(f"release {r}: not a ligament link of {params.name} ({', '.join(names)})")
     T0 = None
     if release:
-        from toolkit.conventions import joint_to_pose
-
         T0 = joint_to_pose(Mechanism(params).motion_at(np.array([0.0]))[0][0])
 
     def mv(p):
@@ -180,9 +177,6 @@ def apply_cut(params: MechanismParams, cut: Cut, release=()) -> tuple[MechanismP
 def _track_initial(params: MechanismParams, links, pf):
     """The stored assembly carried to the new geometry by a homotopy in 20 steps (Newton from the previous
     step's solution), so the osteotomised knee keeps its branch."""
-    from models.mechanism.params import InitialPose
-    from models.mechanism.solver import quick_tf_sweep
-
     if params.initial is None:
         return None
     v0 = params.to_vector()
@@ -215,8 +209,6 @@ class Alignment:
 def alignment(mech: Mechanism, hip_in_femur, ankle_in_tibia, plateau_z: tuple[float, float],
               flexion: float = 0.0) -> Alignment:
     """Mechanical axes and weight-bearing line with the tibia at ``flexion`` (rad, default full extension)."""
-    from toolkit.conventions import joint_to_pose
-
     tf, _ = mech.motion_at(np.array([flexion]))
     T = joint_to_pose(tf[0])
     H = np.asarray(hip_in_femur, float)
@@ -245,13 +237,31 @@ def plateau_width(tibia: trimesh.Trimesh, depth: float = 20.0) -> tuple[float, f
     return float(top[:, 2].min()), float(top[:, 2].max())
 
 
-def osteotomy(params: MechanismParams, cut: Cut, height: float = 1.75, hip_in_femur=None, ankle_in_tibia=None,
-              release=()):
-    """Apply ``cut`` and recompute. Returns a dict with the mechanisms, alignments before/after, the moved
-    insertions, the new hip or ankle centre and the fragment transform."""
-    from models.gait import Anthropometry
-    from models.phantom import build_phantom
+@dataclass
+class OsteotomyResult:
+    """An osteotomy applied: the mechanisms before and after, the parameter set after, what moved with the
+    fragment (one line each), the fragment's motion ``W`` (4, 4, bone frame), the phantom cut, the
+    alignments at full extension before and after, the hip and ankle centres (femur and tibia frames, mm)
+    before and after, and the plateau's medial and lateral edges (z, mm)."""
 
+    before: Mechanism
+    after: Mechanism
+    params: MechanismParams
+    moved: list
+    W: np.ndarray
+    phantom: Phantom
+    align_before: Alignment
+    align_after: Alignment
+    hip: tuple
+    ankle: tuple
+    plateau_z: tuple
+
+
+def osteotomy(params: MechanismParams, cut: Cut, height: float = 1.75, hip_in_femur=None, ankle_in_tibia=None,
+              release=()) -> OsteotomyResult:
+    """Apply ``cut`` to ``params`` and recompute the alignment (see the module docstring). The hip and
+    ankle centres default to the long axes at the anthropometric segment lengths of a subject of
+    ``height`` (m). Raises :class:`AssemblyError` when the knee no longer assembles at full extension."""
     anthro = Anthropometry(72.0, height)
     H = np.array([0.0, anthro.thigh[0] * 1e3, 0.0]) if hip_in_femur is None else np.asarray(hip_in_femur, float)
     A = np.array([0.0, -anthro.shank[0] * 1e3, 0.0]) if ankle_in_tibia is None else np.asarray(ankle_in_tibia, float)
@@ -276,171 +286,59 @@ def osteotomy(params: MechanismParams, cut: Cut, height: float = 1.75, hip_in_fe
     except AssemblyError as e:
         hint = [lk.name for lk in params.links if lk.role == "ligament" and f"{lk.name} {cut.bone} point" in moved
                 and lk.name not in release]
-        extra = (f"; the insertion of {', '.join(hint)} moved with the fragment (release it with --release "
-                 f"{hint[0]})") if hint else ""
-        raise KneeInputError(f"after a {cut.angle:+g} deg {cut.bone} osteotomy the mechanism does not assemble "
-                             f"({str(e).split(': ', 1)[-1]}){extra}") from None
+        extra = (f"; the insertion of {', '.join(hint)} moved with the fragment: release {hint[0]} to re-tension "
+                 f"it") if hint else ""
+        raise AssemblyError(f"after a {cut.angle:+g} deg {cut.bone} osteotomy the mechanism does not assemble "
+                            f"({str(e).split(': ', 1)[-1]}){extra}") from None
     pz = plateau_width(ph.tibia)
-    return {"before": before, "after": after, "params": new, "moved": moved, "W": W, "phantom": ph,
-            "align_before": alignment(before, H, A, pz), "align_after": alignment(after, H2, A2, pz),
-            "hip": (H, H2), "ankle": (A, A2), "plateau_z": pz}
+    return OsteotomyResult(before, after, new, moved, W, ph, alignment(before, H, A, pz), alignment(after, H2, A2, pz),
+                           (H, H2), (A, A2), pz)
 
 
-# ----------------------------------------------------------------------------------------------
-# Report, plot, recording
+@dataclass
+class OsteotomyComparison:
+    """Before against after: the TF motion (n, 6) (rad, mm) at the angles ``flexion_deg`` (n,) both
+    assemble over (0-120 deg, every 2), and the gait analyses of one trial."""
+
+    flexion_deg: np.ndarray
+    tf_before: np.ndarray
+    tf_after: np.ndarray
+    gait_before: GaitResult
+    gait_after: GaitResult
 
 
-def compare(res: dict, trial, height: float = 1.75, mass: float = 72.0) -> dict:
+def compare(res: OsteotomyResult, trial: GaitTrial, height: float = 1.75, mass: float = 72.0) -> OsteotomyComparison:
     """Kinematics over flexion and contact in gait, before and after (the numbers of the report)."""
-    from models.gait import Anthropometry, analyse_gait
-
-    b, a = res["before"], res["after"]
+    b, a = res.before, res.after
     lo = max(b.assembly_range[0], a.assembly_range[0], 0.0)
     hi = min(b.assembly_range[1], a.assembly_range[1], math.radians(120.0))
     fl = np.arange(math.degrees(lo), math.degrees(hi) + 1e-9, 2.0)
     tb, _ = b.motion_at(np.radians(fl))
     ta, _ = a.motion_at(np.radians(fl))
     anthro = Anthropometry(mass, height)
-    gb = analyse_gait(b, trial, anthro, ankle_in_tibia=res["ankle"][0], hip_in_femur=res["hip"][0])
-    ga = analyse_gait(a, trial, anthro, ankle_in_tibia=res["ankle"][1], hip_in_femur=res["hip"][1])
-    return {"flexion_deg": fl, "tf_before": tb, "tf_after": ta, "gait_before": gb, "gait_after": ga}
+    gb = analyse_gait(b, trial, anthro, ankle_in_tibia=res.ankle[0], hip_in_femur=res.hip[0])
+    ga = analyse_gait(a, trial, anthro, ankle_in_tibia=res.ankle[1], hip_in_femur=res.hip[1])
+    return OsteotomyComparison(fl, tb, ta, gb, ga)
 
 
-def _gait_summary(g):
+@dataclass(frozen=True)
+class ContactSummary:
+    """One contact over a gait cycle: its peak force (N), Hertz and elastic-foundation peak pressures
+    (MPa; the latter None when not computed) and its mean share of the total contact force in stance."""
+
+    peak_force_N: float
+    hertz_peak_MPa: float
+    foundation_peak_MPa: float | None
+    mean_share: float
+
+
+def gait_contact_summary(g: GaitResult) -> dict[str, ContactSummary]:
+    """Per contact, its :class:`ContactSummary` over the gait cycle ``g``."""
     out = {}
-    total = sum(e["force"] for e in g.contact.values())
+    total = sum(e.force for e in g.contact.values())
     stance = total > 0
     for name, e in g.contact.items():
-        share = float(np.mean(e["force"][stance] / total[stance])) if stance.any() else float("nan")
-        out[name] = {"peak_force_N": float(e["force"].max()), "hertz_peak_MPa": float(e["hertz"].peak.max()),
-                     "foundation_peak_MPa": float(e["foundation_peak"].max()) if "foundation_peak" in e else None,
-                     "mean_share": share}
+        share = float(np.mean(e.force[stance] / total[stance])) if stance.any() else float("nan")
+        out[name] = ContactSummary(float(e.force.max()), float(e.hertz.peak.max()),
+                                   float(e.foundation.peak.max()) if e.foundation is not None else None, share)
     return out
-
-
-def report_markdown(cut: Cut, res: dict, cmp: dict, release=()) -> str:
-    ab, aa = res["align_before"], res["align_after"]
-    d = cmp["tf_after"] - cmp["tf_before"]
-    d[:, :3] = np.degrees(d[:, :3])
-    names = ("adduction (deg)", "internal rotation (deg)", "anterior (mm)", "proximal (mm)", "lateral (mm)")
-    gb, ga = _gait_summary(cmp["gait_before"]), _gait_summary(cmp["gait_after"])
-    lines = [f"# Virtual osteotomy: {res['before'].params.name}, {cut.bone}, {cut.angle:+g} deg", "",
-             f"Cut plane through {np.round(cut.plane_point, 1).tolist()} mm, normal {np.round(cut.plane_normal, 3).tolist()}; "
-             f"hinge through {np.round(cut.hinge_point, 1).tolist()} mm along {np.round(cut.hinge_axis, 3).tolist()} "
-             f"({cut.bone} frame). Positive angles open the wedge opposite the hinge.", "",
-             "Moved with the fragment: " + (", ".join(res["moved"]) or "nothing") + ".", "",
-             "## Alignment at full extension", "", "| | before | after |", "|---|---:|---:|",
-             f"| hip-knee-ankle deviation (deg, + varus) | {ab.hka_deg:+.2f} | {aa.hka_deg:+.2f} |",
-             f"| weight-bearing line across the plateau (% medial->lateral; target {FUJISAWA}) | {ab.wbl_percent:.1f} | "
-             f"{aa.wbl_percent:.1f} |",
-             f"| assembly range (deg) | {math.degrees(res['before'].assembly_range[0]):.1f} to "
-             f"{math.degrees(res['before'].assembly_range[1]):.1f} | {math.degrees(res['after'].assembly_range[0]):.1f} "
-             f"to {math.degrees(res['after'].assembly_range[1]):.1f} |", "",
-             f"## Kinematics over {cmp['flexion_deg'][0]:.0f}-{cmp['flexion_deg'][-1]:.0f} deg flexion (after - before)", "",
-             "| component | max abs change | at flexion (deg) |", "|---|---:|---:|"]
-    for k, nm in enumerate(names):
-        i = int(np.argmax(np.abs(d[:, k + 1])))
-        lines.append(f"| {nm} | {abs(d[i, k + 1]):.2f} | {cmp['flexion_deg'][i]:.0f} |")
-    lines += ["", f"## Contact in gait ({cmp['gait_before'].trial.source})", "",
-              "| contact | peak force before (N) | after | Hertz peak before (MPa) | after | share of contact force in stance before | after |",
-              "|---|---:|---:|---:|---:|---:|---:|"]
-    for nm in gb:
-        lines.append(f"| {nm} | {gb[nm]['peak_force_N']:.0f} | {ga[nm]['peak_force_N']:.0f} | "
-                     f"{gb[nm]['hertz_peak_MPa']:.2f} | {ga[nm]['hertz_peak_MPa']:.2f} | {gb[nm]['mean_share']:.2f} | "
-                     f"{ga[nm]['mean_share']:.2f} |")
-    nb = sum(1 for f in cmp["gait_before"].statics.flags if f)
-    na = sum(1 for f in cmp["gait_after"].statics.flags if f)
-    lines += ["", f"Frames with a member loaded the wrong way (flagged): {nb} before, {na} after (of "
-                  f"{cmp['gait_before'].trial.time.size}).", ""]
-    return "\n".join(lines)
-
-
-def plot(cut: Cut, res: dict, cmp: dict, path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig = plt.figure(figsize=(15, 8))
-    fl = cmp["flexion_deg"]
-    titles = ("adduction (deg)", "internal rotation (deg)", "anterior (mm)", "proximal (mm)", "lateral (mm)")
-    for k in range(5):
-        ax = fig.add_subplot(2, 4, k + 1)
-        sc = 180 / math.pi if k < 2 else 1.0
-        ax.plot(fl, cmp["tf_before"][:, k + 1] * sc, "k", label="before")
-        ax.plot(fl, cmp["tf_after"][:, k + 1] * sc, "tab:red", label="after")
-        ax.set_title(f"TF {titles[k]}", fontsize=9)
-        ax.set_xlabel("flexion (deg)", fontsize=8)
-        if k == 0:
-            ax.legend(fontsize=7)
-    ax = fig.add_subplot(2, 4, 6)
-    for al, col, lab in ((res["align_before"], "k", "before"), (res["align_after"], "tab:red", "after")):
-        pts = np.array([al.hip, al.knee, al.tibia_origin, al.ankle])
-        ax.plot(pts[:, 2], pts[:, 1], "-o", color=col, ms=3, label=f"{lab}: HKA {al.hka_deg:+.1f} deg")
-        ax.plot([al.hip[2], al.ankle[2]], [al.hip[1], al.ankle[1]], "--", color=col, lw=0.8)
-    ax.set_title("frontal plane (z lateral, exaggerated; y proximal; mm)", fontsize=9)
-    ax.legend(fontsize=7)
-    ax = fig.add_subplot(2, 4, 7)
-    for g, style, lab in ((cmp["gait_before"], "-", "before"), (cmp["gait_after"], "--", "after")):
-        for nm, e in g.contact.items():
-            ax.plot(g.trial.time, e["force"], style, label=f"{nm} {lab}")
-    ax.set_title("contact force in gait (N)", fontsize=9)
-    ax.set_xlabel("time (s)", fontsize=8)
-    ax.legend(fontsize=7)
-    ax = fig.add_subplot(2, 4, 8)
-    z0, z1 = res["plateau_z"]
-    ax.plot([0, 100], [0, 0], "k", lw=6, alpha=0.3)
-    for al, col in ((res["align_before"], "k"), (res["align_after"], "tab:red")):
-        ax.plot([al.wbl_percent], [0], "o", color=col)
-    ax.axvline(FUJISAWA, color="tab:green", ls=":", label=f"{FUJISAWA} % (Fujisawa)")
-    ax.set_xlim(-10, 110)
-    ax.set_yticks([])
-    ax.set_title("weight-bearing line on the plateau (% medial -> lateral)", fontsize=9)
-    ax.legend(fontsize=7)
-    fig.suptitle(f"{res['before'].params.name}: {cut.bone} osteotomy {cut.angle:+g} deg")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-
-
-def write_recording(cut: Cut, res: dict, path) -> None:
-    """Before and after side by side: femur, tibia fragments (the moved one turned), mechanical axes and
-    the weight-bearing line, at full extension."""
-    import rerun as rr
-    import rerun.blueprint as rrb
-
-    from toolkit import recording as R
-    from toolkit.conventions import joint_to_pose
-
-    rec = R.new_recording()
-    bp = rrb.Blueprint(rrb.Horizontal(rrb.Spatial3DView(origin="before", name="Before"),
-                                      rrb.Spatial3DView(origin="after", name="After")), collapse_panels=True)
-    R.save(rec, path, bp)
-    ph = res["phantom"]
-    bone = ph.tibia if cut.bone == "tibia" else ph.femur
-    n = cut.plane_normal / np.linalg.norm(cut.plane_normal)
-    knee_side = np.sign((np.zeros(3) - cut.plane_point) @ n) * n
-    side = (bone.triangles_center - cut.plane_point) @ knee_side > 0  # faces by side (display only)
-    fixed, moving = (trimesh.Trimesh(bone.vertices, bone.faces[m], process=False) for m in (side, ~side))
-    for m in (fixed, moving):
-        m.remove_unreferenced_vertices()
-    for root, mech, al, W in (("before", res["before"], res["align_before"], np.eye(4)),
-                              ("after", res["after"], res["align_after"], res["W"])):
-        rec.log(root, rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
-        T = joint_to_pose(mech.motion_at(np.array([0.0]))[0][0])
-        frag = moving.copy().apply_transform(W)
-        if cut.bone == "tibia":
-            R.log_mesh(rec, f"{root}/femur", ph.femur, R.BONE_COLOURS["femur"])
-            R.log_mesh(rec, f"{root}/tibia/proximal", fixed.copy().apply_transform(T), R.BONE_COLOURS["tibia"])
-            R.log_mesh(rec, f"{root}/tibia/distal", frag.apply_transform(T), (200, 160, 140))
-        else:
-            R.log_mesh(rec, f"{root}/femur/distal", fixed, R.BONE_COLOURS["femur"])
-            R.log_mesh(rec, f"{root}/femur/proximal", frag, (200, 160, 140))
-            R.log_mesh(rec, f"{root}/tibia", ph.tibia.copy().apply_transform(T), R.BONE_COLOURS["tibia"])
-        rec.log(f"{root}/axes", rr.LineStrips3D([[al.hip, al.knee], [al.tibia_origin, al.ankle]],
-                                                colors=[(40, 90, 200)], radii=[1.0]), static=True)
-        rec.log(f"{root}/weight_bearing_line", rr.LineStrips3D([[al.hip, al.ankle]], colors=[(220, 60, 40)],
-                                                               radii=[0.8]), static=True)
-        rec.log(f"{root}/wbl_crossing", rr.Points3D([al.crossing], colors=[(220, 60, 40)], radii=[3.0],
-                                                    labels=[f"{al.wbl_percent:.1f} %"]), static=True)
-    rec.flush()

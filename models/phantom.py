@@ -22,9 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
-
-from models.mechanism.params import MechanismParams
-from toolkit.conventions import joint_to_pose
+from knee.foundations.conventions import joint_to_pose
+from knee.models.mechanism.params import MechanismParams
 
 DEFAULT_CONDYLE_RADIUS = 22.0
 FACET_RADIUS = 17.0  # horizontal radius of a tibial facet (mm)
@@ -62,7 +61,7 @@ class Phantom:
                    length: float | None = None) -> list[tuple[trimesh.Trimesh, np.ndarray]]:
         """The envelope's solid parts before their union: (mesh in the part's own frame, pose (4, 4) that
         places it in the femur frame). The meshes do not depend on the pose (built once per length), so a
-        posed envelope can be queried part by part without building the union (:class:`models.prior.SkinModel`)."""
+        posed envelope can be queried part by part without building the union (:class:`knee.models.prior.SkinModel`)."""
         L = self.shaft_length + 10.0 if length is None else float(length)
         thigh, shank, knee, patella = self._skin_meshes(L)
         tf_pose = np.asarray(tf_pose, float)

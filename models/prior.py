@@ -10,8 +10,7 @@ registered skin, the inlier fraction
 and the flatness of the score around the optimum.
 
 Kinematics alone (method iv of the comparison): the bones posed by the mechanism at the estimated angle,
-placed in the camera's frame by the registration. :func:`pose_errors` measures any estimated bone poses
-against the truth at target points (epiphysis and ACL/PCL footprints), as the FEM evaluation does.
+placed in the camera's frame by the registration (:func:`kinematic_estimate`).
 
 Frames: the point cloud and every pose are in one world frame; the model's femur frame is the reference
 (the skin is built in it). ``T_world_model`` takes model (femur-frame) coordinates to the world.
@@ -23,33 +22,19 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
+from knee.foundations.errors import KneeInputError
+from knee.foundations.pointclouds import icp, voxel_downsample
+from knee.foundations.surfaces import SurfaceQuery
+from knee.models.mechanism.solver import Mechanism
+from knee.models.phantom import Phantom
 from scipy.spatial import cKDTree
-
-from models.fem.depth import icp
-from models.fem.geometry import SurfaceQuery
-from models.mechanism.solver import Mechanism
-from models.phantom import Phantom
-from toolkit.conventions import invert_poses, joint_to_pose, transform_points
-from toolkit.errors import KneeInputError
+from scipy.spatial.transform import Rotation
+from trimesh.sample import sample_surface
 
 GOLDEN = (math.sqrt(5) - 1) / 2
 #: Voxel size (mm) the cloud is thinned to before registration.
 VOXEL_MM = 4.0
-
-
-def voxel_downsample(points, voxel: float) -> np.ndarray:
-    """One point (the mean) per occupied voxel, vectorised (the voxel's three indices packed into one
-    integer key, so the grouping is a 1-D unique)."""
-    points = np.asarray(points, float)
-    ijk = np.floor(points / voxel).astype(np.int64)
-    ijk -= ijk.min(axis=0)
-    span = ijk.max(axis=0) + 1
-    keys = (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
-    _, inv, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    out = np.zeros((counts.size, 3))
-    for k in range(3):
-        out[:, k] = np.bincount(inv, weights=points[:, k], minlength=counts.size)
-    return out / counts[:, None]
 
 
 #: ICP iterations per candidate of the coarse scan (it only ranks the candidates; the refinement uses 30).
@@ -60,7 +45,7 @@ MIN_SHANK_POINTS = 150
 #: Fewest registered points on the shank's own skin (nearest to it, within 5 mm) below which the estimate
 #: warns that the flexion is seen only through the knee's outline.
 MIN_SEEN_SHANK = 100
-#: The shank's index among the skin's parts (:meth:`models.phantom.Phantom.skin_parts`: thigh, shank, knee,
+#: The shank's index among the skin's parts (:meth:`knee.models.phantom.Phantom.skin_parts`: thigh, shank, knee,
 #: patella).
 SHANK = 1
 
@@ -128,14 +113,12 @@ class PosedSkin:
 
 class SkinModel:
     """The skin of a phantom posed by a mechanism at any flexion (cached by angle). The skin's parts
-    (:meth:`models.phantom.Phantom.skin_parts`) are meshed, sampled and put in ray-casting scenes once;
+    (:meth:`knee.models.phantom.Phantom.skin_parts`) are meshed, sampled and put in ray-casting scenes once;
     a flexion only moves them."""
 
     def __init__(self, mech: Mechanism, phantom: Phantom, length: float | None = None, n_samples: int = 6000):
         self.mech, self.phantom, self.length = mech, phantom, length
         self._cache = {}
-        from trimesh.sample import sample_surface
-
         meshes = [m for m, _ in phantom.skin_parts(np.eye(4), np.eye(4) if mech.has_pf else None, length)]
         area = sum(m.area for m in meshes)
         self._queries, self._local = [], []
@@ -279,41 +262,6 @@ def seen_shank_points(skin: PosedSkin, points_model, within_mm: float = 5.0) -> 
     return int(np.count_nonzero((d[SHANK] < within_mm) & (d[SHANK] < others)))
 
 
-@dataclass
-class TargetSet:
-    """Target points in each bone's own frame (mm) with footprint masks: the epiphysis (bone surface within
-    ``epiphysis_length`` of the joint) and the ACL/PCL footprints (within ``radius`` of the attachments'
-    nearest surface points)."""
-
-    femur: np.ndarray
-    tibia: np.ndarray
-    femur_footprints: np.ndarray
-    tibia_footprints: np.ndarray
-
-
-def target_set(mech: Mechanism, phantom: Phantom, radius: float = 10.0, epiphysis_length: float = 40.0) -> TargetSet:
-    fv, tv = phantom.femur.vertices, phantom.tibia.vertices
-    fe, te = fv[fv[:, 1] < epiphysis_length], tv[tv[:, 1] > -epiphysis_length]
-    fa = np.vstack([mech.params.link(n).femur for n in ("acl", "pcl")])
-    ta = np.vstack([mech.params.link(n).tibia for n in ("acl", "pcl")])
-    fa = fe[np.linalg.norm(fe[:, None] - fa[None], axis=2).argmin(axis=0)]
-    ta = te[np.linalg.norm(te[:, None] - ta[None], axis=2).argmin(axis=0)]
-    return TargetSet(fe, te, (np.linalg.norm(fe[:, None] - fa[None], axis=2) < radius).any(axis=1),
-                     (np.linalg.norm(te[:, None] - ta[None], axis=2) < radius).any(axis=1))
-
-
-def pose_errors(targets: TargetSet, T_femur_true, T_tibia_true, T_femur_est, T_tibia_est) -> dict:
-    """Distances (mm) between target points carried by the true and by the estimated bone poses (world):
-    {bone: {"footprints": (mean, sd), "epiphysis": (mean, sd)}}."""
-    out = {}
-    for bone, P, mask, Tt, Te in (("femur", targets.femur, targets.femur_footprints, T_femur_true, T_femur_est),
-                                  ("tibia", targets.tibia, targets.tibia_footprints, T_tibia_true, T_tibia_est)):
-        d = np.linalg.norm(transform_points(Te, P) - transform_points(Tt, P), axis=1)
-        out[bone] = {"footprints": (float(d[mask].mean()), float(d[mask].std())),
-                     "epiphysis": (float(d.mean()), float(d.std()))}
-    return out
-
-
 def kinematic_estimate(mech: Mechanism, est: FlexionEstimate) -> tuple[np.ndarray, np.ndarray]:
     """Method (iv): world poses of femur and tibia from the mechanism at the estimated flexion."""
     tf, _ = mech.motion_at(np.array([est.flexion]))
@@ -364,8 +312,6 @@ class TibiaCorrection:
 
 def small_pose(xi) -> np.ndarray:
     """(4, 4) pose from a rotation vector (rad) and a translation: ``xi`` (6,)."""
-    from scipy.spatial.transform import Rotation
-
     D = np.eye(4)
     D[:3, :3] = Rotation.from_rotvec(xi[:3]).as_matrix()
     D[:3, 3] = xi[3:]

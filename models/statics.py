@@ -24,10 +24,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from models.mechanism.solver import Mechanism
-from toolkit.conventions import joint_to_pose
-from toolkit.errors import KneeInputError
+from knee.foundations.conventions import joint_to_pose
+from knee.foundations.errors import KneeInputError
+from knee.models.mechanism.solver import Mechanism
 
 #: Force (N) below which a member counts as unloaded when flagging (numerical noise).
 FORCE_TOL = 1e-6

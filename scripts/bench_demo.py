@@ -18,10 +18,10 @@ from pathlib import Path
 
 BASELINE = """
 import time
-from models.demo import DEMO_METHODS, _run
+from knee.app.demo import DEMO_METHODS, run_demo_method
 t = time.perf_counter()
 for m in DEMO_METHODS:
-    _run(m, 60.0, 3, 2.0)
+    run_demo_method(m, 60.0, 3, 2.0)
 print(time.perf_counter() - t)
 """
 
@@ -42,7 +42,7 @@ def main():
     with tempfile.TemporaryDirectory() as tmp:
         for i in range(args.runs):
             print(f"knee demo, run {i + 1} of {args.runs} ...", file=sys.stderr, flush=True)
-            demo.append(timed([sys.executable, "-m", "toolkit.cli", "demo", "--out", str(Path(tmp) / f"demo{i}")]))
+            demo.append(timed([sys.executable, "-m", "knee.app.cli", "demo", "--out", str(Path(tmp) / f"demo{i}")]))
     print("baseline: the three methods one after another ...", file=sys.stderr, flush=True)
     base = timed([sys.executable, "-c", BASELINE])
     med = statistics.median(demo)

@@ -29,9 +29,8 @@ import numpy as np
 def run_one(cfg: dict) -> dict:
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
-
-    from models.fem.scene import FemSettings, build_association_model, knee_angles
-    from models.mechanism import Mechanism
+    from knee.models.fem.scene import FemSettings, build_association_model, knee_angles
+    from knee.models.mechanism import Mechanism
 
     t0 = time.perf_counter()
     settings = FemSettings(n_along=cfg.get("n_along"))

@@ -24,8 +24,15 @@ def main():
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args()
 
-    from fitting.optimize import TFFit, fit_tf, motion_mae, noise_weights, perturb_endpoints, synthetic_motion
-    from models.mechanism import load_model
+    from knee.fitting.optimize import (
+        TFFit,
+        fit_tf,
+        motion_mae,
+        noise_weights,
+        perturb_endpoints,
+        synthetic_motion,
+    )
+    from knee.models.mechanism import load_model
 
     truth_p = load_model("volunteer")
     meas, truth = synthetic_motion(truth_p, np.linspace(0, 120, 60), seed=1)
@@ -71,9 +78,10 @@ def pipeline(repeat):
     import tempfile
     from pathlib import Path
 
-    from fitting.pf import PFFit
-    from fitting.pipeline import run_fit
-    from fitting.synthetic import make_subject
+    from knee.app.reports.fit import write_outputs
+    from knee.fitting.pf import PFFit
+    from knee.fitting.pipeline import fit_subject
+    from knee.fitting.synthetic import make_subject
 
     tmp = Path(tempfile.mkdtemp(prefix="knee-bench-fit-"))
     try:
@@ -81,19 +89,20 @@ def pipeline(repeat):
         times, vecs, outs = [], [], []
         for k in range(repeat):
             t = time.perf_counter()
-            o = run_fit(subj, tmp / f"out{k}", seed=0)
+            o = fit_subject(subj, seed=0)
+            write_outputs(o, tmp / f"out{k}")
             times.append(time.perf_counter() - t)
             vecs.append(o.fitted.to_vector())
             outs.append(o)
         same = all(np.array_equal(vecs[0], v) for v in vecs[1:])
         o = outs[0]
-        t_mae = o.truth_errors["tf"]["mae"][1:]
-        p_mae = o.truth_errors["pf"]["mae"]
+        t_mae = o.truth_errors.tf.mae[1:]
+        p_mae = o.truth_errors.pf.mae
         print(f"| whole pipeline, 60 frames, TF+PF (first estimate, fits, report, figure, recording) | "
-              f"{statistics.median(times):.1f} s | – | fit alone {o.seconds['fit']:.1f} s; same seed, same result: "
+              f"{statistics.median(times):.1f} s | – | fit alone {o.seconds.fit:.1f} s; same seed, same result: "
               f"{same}; vs noise-free truth TF {t_mae.round(2).tolist()}, PF {p_mae.round(2).tolist()} |")
         # PF local stage exact vs finite differences, from a start near the optimum
-        from fitting.optimize import Motion
+        from knee.fitting.optimize import Motion
 
         prob = PFFit(o.fitted, Motion(o.motion.tf, o.motion.pf))
         g = np.random.default_rng(0)

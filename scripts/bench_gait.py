@@ -16,14 +16,13 @@ import statistics
 import time
 
 
-
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeat", type=int, default=7)
     args = ap.parse_args()
-    from models.gait import analyse_gait, normative_trial
-    from models.mechanism import Mechanism
-    from models.statics import solve_statics
+    from knee.models.gait import analyse_gait, normative_trial
+    from knee.models.mechanism import Mechanism
+    from knee.models.statics import solve_statics
 
     mech = Mechanism.from_name("volunteer")
     trial = normative_trial(72.0)

@@ -35,8 +35,8 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeat", type=int, default=300)
     args = ap.parse_args()
-    from models.mechanism import Mechanism
-    from models.mechanism import reference as ref
+    from knee.models.mechanism import Mechanism
+    from knee.models.mechanism import reference as ref
 
     m = Mechanism.from_name("volunteer", compile=True)
     vm = Mechanism.from_name("volunteer", compile=False)

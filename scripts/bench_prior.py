@@ -40,13 +40,11 @@ def main():
         print("bench_prior: --repeat must be at least 1", file=sys.stderr)
         sys.exit(2)
 
-    from fitting.optimize import perturb_endpoints
-    from models.fem.case import camera_from_spec, case_points
-    from models.fem.compare_report import footprint_error
-    from models.fem.depth import DepthNoise
-    from models.fem.prior_case import result_row, run_method
-    from models.fem.scene import build_association_model
-    from models.mechanism import Mechanism
+    from knee.app.experiments.cases import case_points, result_row, run_method
+    from knee.fitting.optimize import perturb_endpoints
+    from knee.models.fem.depth import DepthNoise, camera_from_spec
+    from knee.models.fem.scene import build_association_model
+    from knee.models.mechanism import Mechanism
 
     truth = Mechanism.from_name("volunteer")
     prior = Mechanism(perturb_endpoints(truth.params, 1.0, 2.0, seed=3))
@@ -64,7 +62,7 @@ def main():
                 model.solver.factor_backend = backend
                 r = run_method(method, truth, prior, fl, cam, noise, 3, points=points[(cam_name, fl)], model=model)
                 row = result_row(cam_name, fl, r)
-                runs[(cam_name, fl)].setdefault(label, []).append((r.wall_seconds, r.steps, footprint_error(row)))
+                runs[(cam_name, fl)].setdefault(label, []).append((row.wall_seconds, row.steps, row.footprints_mm))
             o = runs[(cam_name, fl)]
             paper = f"; paper's method {o['paper'][-1][0]:.1f} s" if "paper" in o else ""
             print(f"[run {rep + 1}/{args.repeat}, {i + 1}/{len(CASES)}] {cam_name} {fl}: "

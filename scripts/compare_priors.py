@@ -25,7 +25,7 @@ def main():
     args = ap.parse_args()
     out = Path(args.out)
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
-    procs = {name: subprocess.Popen([sys.executable, "-m", "toolkit.cli", "compare", "volunteer", *extra, "--quiet",
+    procs = {name: subprocess.Popen([sys.executable, "-m", "knee.app.cli", "compare", "volunteer", *extra, "--quiet",
                                      "--out", str(out / name)], env=env, stdout=subprocess.PIPE, text=True)
              for name, extra in SETS.items()}
     failed = 0

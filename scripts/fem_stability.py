@@ -21,8 +21,8 @@ def main():
     ap.add_argument("--force", type=float, default=1000.0)
     ap.add_argument("--release", type=int, default=200, help="step at which the load is removed (-1: never)")
     args = ap.parse_args()
-    from models.fem.scene import build_association_model, knee_angles
-    from models.mechanism import Mechanism
+    from knee.models.fem.scene import build_association_model, knee_angles
+    from knee.models.mechanism import Mechanism
 
     model = build_association_model(Mechanism.from_name("volunteer"))
     s = model.solver

@@ -17,19 +17,20 @@ def main():
     ap.add_argument("--scale", type=float, default=1.0, help="factor on the paper's bone-force magnitudes")
     ap.add_argument("--max-steps", type=int, default=200)
     args = ap.parse_args()
-    from models.fem.case import run_standard_case
-    from models.mechanism import Mechanism
+    from knee.app.experiments.cases import run_standard_case
+    from knee.models.mechanism import Mechanism
 
-    r = run_standard_case(Mechanism.from_name("volunteer"), args.flexion, bone_force_scale=args.scale,
+    c = run_standard_case(Mechanism.from_name("volunteer"), args.flexion, bone_force_scale=args.scale,
                           max_steps=args.max_steps)
-    print(f"true flexion {r.flexion_true_deg:.1f} deg, estimated {r.flexion_estimated_deg:.1f} deg; "
+    r = c.reconstruction
+    print(f"true flexion {c.flexion_true_deg:.1f} deg, estimated {r.flexion_deg:.1f} deg; "
           f"{r.steps} steps ({r.steps_bone_phase} with bone forces), {r.wall_seconds:.1f} s, "
           f"{'converged' if r.converged else 'not converged'}")
     print("| bone | footprints (mm) | epiphysis (mm) |")
     print("|---|---|---|")
-    for bone, e in r.errors.items():
-        fp, ep = e["footprints"], e["epiphysis"]
-        print(f"| {bone} | {fp[0]:.2f} ± {fp[1]:.2f} | {ep[0]:.2f} ± {ep[1]:.2f} |")
+    for bone in ("femur", "tibia"):
+        e = c.errors.bone(bone)
+        print(f"| {bone} | {e.footprints.mean:.2f} ± {e.footprints.sd:.2f} | {e.epiphysis.mean:.2f} ± {e.epiphysis.sd:.2f} |")
     print(f"flexion reached in the bone-force phase: {np.nanmax(r.history['flexion_deg'][:r.steps_bone_phase]):.1f} deg")
 
 

@@ -25,19 +25,21 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
-    from fitting.optimize import perturb_endpoints
-    from models.fem.case import default_camera
-    from models.fem.depth import DepthNoise, backproject, render_depth
-    from models.mechanism import Mechanism
-    from models.mechanism.params import load_model
-    from models.phantom import build_phantom
-    from models.prior import estimate_flexion, kinematic_estimate, pose_errors, target_set
-    from toolkit.conventions import joint_to_pose
+    from knee.app.experiments.cases import phantom_targets
+    from knee.fitting.optimize import perturb_endpoints
+    from knee.foundations.conventions import joint_to_pose
+    from knee.foundations.pointclouds import backproject
+    from knee.models.evaluation import pose_errors
+    from knee.models.fem.depth import DepthNoise, default_camera, render_depth
+    from knee.models.mechanism import Mechanism
+    from knee.models.mechanism.params import load_model
+    from knee.models.phantom import build_phantom
+    from knee.models.prior import estimate_flexion, kinematic_estimate
 
     truth = Mechanism.from_name("volunteer")
     prior = Mechanism(perturb_endpoints(load_model("volunteer"), 1.0, 2.0, seed=3))
     ph_t, ph_p = build_phantom(truth.params), build_phantom(prior.params)
-    tg = target_set(truth, ph_t)
+    tg = phantom_targets(truth, ph_t)
     rng = np.random.default_rng(0)
     rows = []
     for az in (35.0, 0.0, 70.0):
@@ -56,8 +58,8 @@ def main():
                          "flexion_est_deg": math.degrees(est.flexion), "error_deg": math.degrees(est.flexion) - deg,
                          "rms_mm": est.rms, "seconds": wall, "at_range_end": est.at_range_end,
                          "shank_points": est.shank_points, "warning": "; ".join(est.warnings),
-                         "femur_footprints_mm": e["femur"]["footprints"][0], "tibia_footprints_mm": e["tibia"]["footprints"][0],
-                         "femur_epiphysis_mm": e["femur"]["epiphysis"][0], "tibia_epiphysis_mm": e["tibia"]["epiphysis"][0]})
+                         "femur_footprints_mm": e.femur.footprints.mean, "tibia_footprints_mm": e.tibia.footprints.mean,
+                         "femur_epiphysis_mm": e.femur.epiphysis.mean, "tibia_epiphysis_mm": e.tibia.epiphysis.mean})
             r = rows[-1]
             print(f"camera {az:4.0f} deg, flexion {deg:3d}: estimate {r['flexion_est_deg']:6.2f} ({r['error_deg']:+.2f}) "
                   f"in {wall:.1f} s; footprints femur {r['femur_footprints_mm']:.2f} tibia {r['tibia_footprints_mm']:.2f} mm"

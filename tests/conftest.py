@@ -9,13 +9,13 @@ import pytest  # noqa: E402
 
 @pytest.fixture(scope="session")
 def volunteer():
-    from models.mechanism import Mechanism
+    from knee.models.mechanism import Mechanism
 
     return Mechanism.from_name("volunteer")
 
 
 @pytest.fixture(scope="session")
 def generic():
-    from models.mechanism import Mechanism
+    from knee.models.mechanism import Mechanism
 
     return Mechanism.from_name("generic-sancisi2017")

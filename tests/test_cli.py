@@ -1,31 +1,55 @@
-"""The knee command as a user runs it: a subprocess, real files."""
+"""The knee command as a user runs it: real files, the command line's own entry point (in-process: a
+subprocess costs seconds of imports; one test runs the installed ``knee`` script itself)."""
 
+import contextlib
+import io
 import os
 import shutil
 import subprocess
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
+from knee.app.cli import main
+from knee.foundations.motion_io import SWEEP_HEADER, read_sweep_csv
+from knee.models.mechanism import load_model
 
-from models.mechanism import load_model
-from toolkit.motion_io import SWEEP_HEADER, read_sweep_csv
-
-KNEE = [sys.executable, "-m", "toolkit.cli"]
+KNEE = [sys.executable, "-m", "knee.app.cli"]
 HEADER = ("tf_flexion_deg,tf_adduction_deg,tf_internal_rotation_deg,tf_anterior_mm,tf_proximal_mm,"
           "tf_lateral_mm,pf_flexion_deg,pf_adduction_deg,pf_internal_rotation_deg,pf_anterior_mm,"
           "pf_proximal_mm,pf_lateral_mm,max_residual_mm,jacobian_condition")
 
 
-def run(*args, cwd=None):
+@dataclass
+class Completed:
+    """What a run of the command line gave: exit code, standard output and standard error."""
+
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def run(*args) -> Completed:
+    """``knee ARGS`` in this process, as the installed script runs it (its exit code, its output)."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = main([str(a) for a in args])
+        except SystemExit as e:  # argparse's own exits (usage errors, --help)
+            code = e.code if isinstance(e.code, int) else 1
+    return Completed(code, out.getvalue(), err.getvalue())
+
+
+def run_subprocess(*args, cwd=None):
     env = dict(os.environ, CI="1")
     return subprocess.run(KNEE + [str(a) for a in args], capture_output=True, text=True, cwd=cwd, env=env,
                           timeout=300)
 
 
-def assert_clean_error(p, *fragments):
-    assert p.returncode == 2, p.stderr
+def assert_clean_error(p, *fragments, code=2):
+    assert p.returncode == code, p.stderr
     assert "Traceback" not in p.stderr
     last = p.stderr.strip().splitlines()[-1]
     assert last.startswith("knee: error: ")
@@ -103,14 +127,14 @@ def test_unreachable_range_writes_the_rows_it_solved(tmp_path, volunteer):
     out = tmp_path / "part.csv"
     p = run("sweep", "volunteer", "--from", 120, "--to", 140, "--out", out)
     hi = np.degrees(volunteer.assembly_range[1])
-    assert_clean_error(p, "sweep stopped", f"stops assembling at {hi:.2f} deg", "last angle solved: 129.00")
+    assert_clean_error(p, "sweep stopped", f"stops assembling at {hi:.2f} deg", "last angle solved: 129.00", code=3)
     table = read_sweep_csv(out)
     np.testing.assert_allclose(table[:, 0], np.arange(120, 130.0))
 
 
 def test_range_outside_assembly(tmp_path):
     p = run("sweep", "volunteer-initial", "--from", 0, "--to", 30, "--out", tmp_path / "x.csv")
-    assert_clean_error(p, "outside the assembly range 7.32 to 60.04 deg")
+    assert_clean_error(p, "outside the assembly range 7.32 to 60.04 deg", code=3)
 
 
 def test_existing_files_are_not_overwritten(tmp_path):
@@ -135,6 +159,16 @@ def test_bad_ranges(args, msg):
 def test_argparse_errors_exit_2():
     p = run("sweep")
     assert p.returncode == 2 and "Traceback" not in p.stderr
+    assert p.stderr.count("\n") == 1 and p.stderr.startswith("knee: error: sweep: ")
+
+
+def test_the_installed_script_runs():
+    """The ``knee`` console script of the installation (not this process's import of it)."""
+    exe = shutil.which("knee") or str(Path(sys.executable).with_name("knee"))
+    p = subprocess.run([exe, "models"], capture_output=True, text=True, env=dict(os.environ, CI="1"), timeout=120)
+    assert p.returncode == 0 and "volunteer" in p.stdout, p.stderr
+    p = subprocess.run([exe, "sweep", "volunteer", "--step", "0"], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and p.stderr == "knee: error: --step must be positive, got 0.0\n"
 
 
 def test_demo(tmp_path):

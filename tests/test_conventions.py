@@ -3,8 +3,7 @@
 import numpy as np
 import pinocchio as pin
 import pytest
-
-from toolkit import conventions as cv
+from knee.foundations import conventions as cv
 
 
 def test_cardan_is_the_stated_product():

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from knee.foundations.errors import KneeInputError
 
-from toolkit.errors import KneeInputError
 from tests.test_cli import assert_clean_error, run
 
 
@@ -73,15 +73,16 @@ def test_knee_fem_point_cloud_far_from_the_model(tmp_path):
 
 @pytest.fixture(scope="module")
 def fem_model(volunteer):
-    from models.fem.scene import build_association_model
+    from knee.models.fem.scene import build_association_model
 
     return build_association_model(volunteer)
 
 
 def test_divergence_names_the_step_and_keeps_the_partial_recording(tmp_path, volunteer):
-    from models.fem.case import FemDivergence, run_standard_case
-    from models.fem.scene import build_association_model
-    from models.fem.views import FemRecorder
+    from knee.app.experiments.cases import run_standard_case
+    from knee.app.views.fem import FemRecorder
+    from knee.foundations.errors import DivergenceError, KneeNumericalError
+    from knee.models.fem.scene import build_association_model
 
     model = build_association_model(volunteer)
     rec = FemRecorder(tmp_path / "partial.rrd", model, every=1)
@@ -91,16 +92,18 @@ def test_divergence_names_the_step_and_keeps_the_partial_recording(tmp_path, vol
         if k == 2:
             m.solver.v[5] = np.nan  # as a blown-up solve would leave it
 
-    with pytest.raises(FemDivergence, match="step 3") as e:
-        run_standard_case(volunteer, 60.0, model=model, progress=False, max_steps=10, on_step=poison)
+    with pytest.raises(DivergenceError, match="step 3") as e:
+        run_standard_case(volunteer, 60.0, model=model, max_steps=10, on_step=poison)
     assert e.value.step == 3
+    assert isinstance(e.value, KneeNumericalError) and not isinstance(e.value, ValueError)
     rec.finish(message=str(e.value))
     assert rec.last_step == 2
     assert "/knee/grid" in _rrd_entities(tmp_path / "partial.rrd")
 
 
 def test_energy_blow_up_and_inverted_cells_stop_the_run(fem_model):
-    from models.fem.case import check_state
+    from knee.foundations.errors import DivergenceError
+    from knee.models.fem.methods import check_state
 
     s = fem_model.solver
     x0, v0 = s.x.copy(), s.v.copy()
@@ -108,18 +111,18 @@ def test_energy_blow_up_and_inverted_cells_stop_the_run(fem_model):
     try:
         assert check_state(fem_model, 0, extent) == 0
         s.x = x0 + np.array([3.0 * extent, 0, 0]) * (np.arange(len(x0)) == 7)[:, None]
-        with pytest.raises(KneeInputError, match="step 4: energy blow-up"):
+        with pytest.raises(DivergenceError, match="step 4: energy blow-up"):
             check_state(fem_model, 4, extent)
         # mirror the grid through a plane: every cell inverted
         s.x = x0 * np.array([-1.0, 1.0, 1.0])
-        with pytest.raises(KneeInputError, match=r"step 9: \d+ of \d+ grid cells inverted"):
+        with pytest.raises(DivergenceError, match=r"step 9: \d+ of \d+ grid cells inverted"):
             check_state(fem_model, 9, extent)
     finally:
         s.x, s.v = x0, v0
 
 
 def test_open_skin_is_repaired_or_refused():
-    from models.fem.grid import build_grid, closed_skin
+    from knee.models.fem.grid import build_grid, closed_skin
 
     box = trimesh.creation.box(extents=[60.0, 120.0, 60.0])
     holed = box.copy()
@@ -146,7 +149,7 @@ def test_open_skin_is_repaired_or_refused():
 
 
 def test_bone_nodes_outside_the_grid_are_counted(fem_model):
-    from models.fem.fields import MappedBoneElasticity
+    from knee.models.fem.fields import MappedBoneElasticity
 
     X = fem_model.femur.el.X.copy()
     X[:3] += np.array([500.0, 0.0, 0.0])  # three nodes far outside the skin
@@ -157,25 +160,27 @@ def test_bone_nodes_outside_the_grid_are_counted(fem_model):
 def test_target_errors_closed_form(fem_model, volunteer):
     """At the model's own extension pose the true tibia points are the model's; estimates moved by a
     translation d are |d| off at every point (sd 0)."""
-    from models.fem.case import target_errors, truth_targets
+    from knee.app.experiments.cases import true_target_positions
+    from knee.models.evaluation import target_errors
 
-    targets, tf, tt = truth_targets(fem_model, volunteer, volunteer.solve(0.0)[0])
+    targets, tf, tt = true_target_positions(fem_model, volunteer, volunteer.solve(0.0)[0])
     np.testing.assert_allclose(tt, targets.tibia, atol=1e-9)
     np.testing.assert_array_equal(tf, targets.femur)
     d = np.array([3.0, 4.0, 0.0])
-    errors, dist = target_errors(targets, tf + d, tt + d, tf, tt)
+    errors = target_errors(targets, tf + d, tt + d, tf, tt)
     for bone in ("femur", "tibia"):
         for part in ("footprints", "epiphysis"):
-            assert errors[bone][part][0] == pytest.approx(5.0, abs=1e-12)
-            assert errors[bone][part][1] == pytest.approx(0.0, abs=1e-12)
-        np.testing.assert_allclose(dist[bone], 5.0)
+            assert getattr(errors.bone(bone), part).mean == pytest.approx(5.0, abs=1e-12)
+            assert getattr(errors.bone(bone), part).sd == pytest.approx(0.0, abs=1e-12)
+        np.testing.assert_allclose(errors.bone(bone).distances, 5.0)
+    assert errors.footprints_mm == pytest.approx(5.0) and errors.epiphysis_mm == pytest.approx(5.0)
 
 
 def test_dropped_cells_are_not_counted_as_inverted(volunteer):
     """Cells dropped at a re-reference (inverted there) carry no stiffness: the divergence check skips them."""
-    from models.fem.case import check_state
-    from models.fem.elements import hex_inverted
-    from models.fem.scene import build_association_model
+    from knee.models.fem.elements import hex_inverted
+    from knee.models.fem.methods import check_state
+    from knee.models.fem.scene import build_association_model
 
     model = build_association_model(volunteer)
     g = model.grid
@@ -192,7 +197,7 @@ def test_dropped_cells_are_not_counted_as_inverted(volunteer):
 
 
 def test_bone_phase_stall_rule():
-    from models.fem.case import bone_phase_stalled
+    from knee.models.fem.methods import bone_phase_stalled
 
     rising = 30.0 + 0.2 * np.arange(30)                       # 2 deg per 10 steps: still flexing
     assert not bone_phase_stalled(rising, 10, 0.5)
@@ -212,13 +217,15 @@ def test_bone_phase_stall_rule():
 def test_bone_phase_ends_on_stall_or_cap(volunteer):
     """Without bone forces the knee never flexes: the phase ends stalled after 11 steps, or, with the
     stall rule off, at the cap of a third of the step budget; the result says which."""
-    from models.fem.case import bone_phase_note, run_standard_case
-    from models.fem.scene import build_association_model
+    from knee.app.experiments.cases import run_standard_case
+    from knee.models.fem.methods import bone_phase_note
+    from knee.models.fem.scene import build_association_model
 
-    kw = dict(bone_force_scale=0.0, max_steps=36, progress=False)
-    r = run_standard_case(volunteer, 60.0, model=build_association_model(volunteer), **kw)
+    kw = dict(bone_force_scale=0.0, max_steps=36)
+    r = run_standard_case(volunteer, 60.0, model=build_association_model(volunteer), **kw).reconstruction
     assert (r.bone_phase_end, r.steps_bone_phase) == ("stalled", 11)
     assert "stopped flexing" in bone_phase_note(r)
-    r = run_standard_case(volunteer, 60.0, model=build_association_model(volunteer), bone_stall_steps=0, **kw)
+    r = run_standard_case(volunteer, 60.0, model=build_association_model(volunteer), bone_stall_steps=0,
+                          **kw).reconstruction
     assert (r.bone_phase_end, r.steps_bone_phase) == ("cap", 12)
     assert "step cap" in bone_phase_note(r)

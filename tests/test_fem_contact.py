@@ -1,12 +1,11 @@
-"""Penalty contact between two embedded point sets (models.fem.fields.MappedPenaltyContact): the forces
+"""Penalty contact between two embedded point sets (knee.models.fem.fields.MappedPenaltyContact): the forces
 against a brute-force nearest-neighbour computation, whatever the candidate list kept between steps; the
 tangent's matrix against its matrix-free product; its pattern within the reserve."""
 
 import numpy as np
-
-from models.fem.fields import MappedPenaltyContact
-from models.fem.grid import SparseGrid
-from models.fem.meshing import box_hexahedra
+from knee.models.fem.fields import MappedPenaltyContact
+from knee.models.fem.grid import SparseGrid
+from knee.models.fem.meshing import box_hexahedra
 
 
 def _grid(n=(6, 6, 4), size=(60.0, 60.0, 40.0)):

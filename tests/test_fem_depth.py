@@ -4,11 +4,16 @@ import numpy as np
 import open3d as o3d
 import pytest
 import trimesh
-
-from models.fem.depth import Camera, DepthNoise, backproject, icp, load_depth_image, load_point_cloud, render_depth
-from models.fem.geometry import SurfaceQuery
-from toolkit.conventions import cardan_to_matrix
-from toolkit.errors import KneeInputError
+from knee.foundations.conventions import cardan_to_matrix
+from knee.foundations.errors import KneeInputError
+from knee.foundations.pointclouds import (
+    backproject,
+    icp,
+    load_depth_image,
+    load_point_cloud,
+)
+from knee.foundations.surfaces import SurfaceQuery
+from knee.models.fem.depth import Camera, DepthNoise, render_depth
 
 
 @pytest.fixture(scope="module")
@@ -103,8 +108,8 @@ def test_depth_image_and_point_cloud_files(tmp_path, knee_like):
 def test_icp_recovers_a_rigid_offset(volunteer):
     """A flexed phantom skin seen by the oblique camera with noise; the same surface displaced by a
     known rigid motion is registered back."""
-    from models.phantom import build_phantom
-    from toolkit.conventions import joint_to_pose
+    from knee.foundations.conventions import joint_to_pose
+    from knee.models.phantom import build_phantom
 
     ph = build_phantom(volunteer.params, shaft_length=100.0)
     tf, pf, _ = volunteer.solve(np.radians(30))

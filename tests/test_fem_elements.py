@@ -5,13 +5,12 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-
-from models.fem.assembly import PatternAssembler
-from models.fem.elements import CorotationalElements, element_strains
-from models.fem.material import elasticity_matrix
-from models.fem.meshing import box_hexahedra, hexahedra_to_tetrahedra
-from toolkit.conventions import cardan_to_matrix
-from toolkit.errors import KneeInputError
+from knee.foundations.conventions import cardan_to_matrix
+from knee.foundations.errors import KneeInputError
+from knee.models.fem.assembly import PatternAssembler
+from knee.models.fem.elements import CorotationalElements, element_strains
+from knee.models.fem.material import elasticity_matrix
+from knee.models.fem.meshing import box_hexahedra, hexahedra_to_tetrahedra
 
 
 def _mesh(kind, n=(3, 2, 2), size=(30.0, 20.0, 20.0), distort=0.0, seed=0):
@@ -110,7 +109,12 @@ def test_rotated_stiffness_is_the_tangent_of_the_corotational_force(kind):
 def test_isotropic_stiffness_blocks_match_b_transpose_d_b(kind):
     """The element stiffness written out in Lame blocks (isotropic D) against the strain-displacement form
     V B^T D B summed over the quadrature points; an anisotropic D takes the B form itself."""
-    from models.fem.elements import _b_matrix, gradient_stiffness, hex_gradients, tet_gradients
+    from knee.models.fem.elements import (
+        _b_matrix,
+        gradient_stiffness,
+        hex_gradients,
+        tet_gradients,
+    )
 
     X, cells = _mesh(kind, distort=2.0, seed=7)
     if kind == "hex":
@@ -132,7 +136,7 @@ def test_shared_stiffness_products_match_each_elements_own():
     """stiffness_product() multiplies a regular grid's cells group by group (one shared matrix per cell
     shape, times the cell's weight): against each element's own matrix, with weights, a dropped element
     and after a rebase on a deformed pose (every cell its own shape: no groups, the batched product)."""
-    from models.fem.elements import shared_stiffness_groups
+    from knee.models.fem.elements import shared_stiffness_groups
 
     X, hexes = box_hexahedra((6, 4, 3), (60.0, 40.0, 30.0))
     X = X.copy()
@@ -197,7 +201,7 @@ def test_material_validation():
 
 
 def test_closed_form_determinants_and_inverted_hexahedra():
-    from models.fem.elements import HEX_CORNERS, _hex_jacobians, det3, hex_inverted
+    from knee.models.fem.elements import HEX_CORNERS, _hex_jacobians, det3, hex_inverted
 
     rng = np.random.default_rng(4)
     J = rng.normal(size=(50, 8, 3, 3))

@@ -3,11 +3,10 @@
 import numpy as np
 import pytest
 import trimesh
-
-from models.fem.bones import tetrahedralize, tetrahedralize_to_count
-from models.fem.geometry import SurfaceQuery
-from models.fem.grid import BOUNDARY, INSIDE, build_grid
-from models.fem.mapping import TrilinearMapping
+from knee.foundations.surfaces import SurfaceQuery
+from knee.models.fem.bones import tetrahedralize, tetrahedralize_to_count
+from knee.models.fem.grid import BOUNDARY, INSIDE, build_grid
+from knee.models.fem.mapping import TrilinearMapping
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +48,7 @@ def test_mapping_reproduces_affine_fields_and_is_consistent(capsule_grid):
 
 
 def test_graded_grid_along_the_limb():
-    from models.fem.grid import graded_axis
+    from knee.models.fem.grid import graded_axis
 
     a = graded_axis(-150.0, 120.0, 3.0, 18.0, 0.0, 15.0)
     h = np.diff(a)
@@ -78,7 +77,7 @@ def test_tetrahedralize_a_sphere():
 
 
 def test_phantom_bones_reach_the_papers_element_count(volunteer):
-    from models.phantom import build_phantom
+    from knee.models.phantom import build_phantom
 
     ph = build_phantom(volunteer.params)
     for bone in (ph.femur, ph.tibia):
@@ -90,8 +89,8 @@ def test_mapped_bone_field_matches_embedding_then_elements(capsule_grid):
     """The bone field gathers its element positions straight from the grid and scatters straight back (one
     sparse map each, the embedding composed in): the same forces and products as embedding the nodes
     (J x), computing the tetrahedra's co-rotational forces there, and returning them through J^T."""
-    from models.fem.elements import CorotationalElements
-    from models.fem.fields import MappedBoneElasticity
+    from knee.models.fem.elements import CorotationalElements
+    from knee.models.fem.fields import MappedBoneElasticity
 
     skin, g = capsule_grid
     bone = trimesh.creation.icosphere(subdivisions=2, radius=30.0)

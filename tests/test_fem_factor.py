@@ -3,8 +3,7 @@
 import numpy as np
 import pytest
 import scipy.sparse as sp
-
-from models.fem.factor import SparseFactor, cholmod_available
+from knee.models.fem.factor import SparseFactor, cholmod_available
 
 
 def _spd(n=300, seed=0):

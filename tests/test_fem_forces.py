@@ -2,13 +2,12 @@
 
 import numpy as np
 import pytest
-
-from models.fem.forces import BoneForces, SurfaceForces
+from knee.models.fem.forces import BoneForces, SurfaceForces
 
 
 @pytest.fixture(scope="module")
 def knee_model(volunteer):
-    from models.fem.scene import build_association_model
+    from knee.models.fem.scene import build_association_model
 
     return build_association_model(volunteer)
 
@@ -51,16 +50,16 @@ def test_surface_forces_and_the_adaptive_reference_distance(knee_model):
 
 
 def test_target_points_have_footprints(knee_model, volunteer):
-    from models.fem.case import target_points
+    from knee.app.experiments.cases import model_targets
 
-    t = target_points(knee_model, volunteer)
+    t = model_targets(knee_model, volunteer)
     assert t.femur_footprints.sum() > 10 and t.tibia_footprints.sum() > 10
     assert len(t.femur) > t.femur_footprints.sum() and len(t.tibia) > t.tibia_footprints.sum()
 
 
 def test_isometric_lateral_spring(knee_model, volunteer):
     """The LCL spring's attachments keep their distance over the mechanism's motion (within 1 mm)."""
-    from toolkit.conventions import joint_to_pose, transform_points
+    from knee.foundations.conventions import joint_to_pose, transform_points
 
     a, b = knee_model.springs.ma.apply(knee_model.grid.X)[1], knee_model.springs.mb.apply(knee_model.grid.X)[1]
     T0 = joint_to_pose(volunteer.solve(0.0)[0])

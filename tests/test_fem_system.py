@@ -1,14 +1,13 @@
-"""The solver's matrix assembled on a kept pattern (models.fem.system) and refactorised on it
-(models.fem.factor.Refactorizer): the same matrix as summing the sparse matrices directly, whatever
+"""The solver's matrix assembled on a kept pattern (knee.models.fem.system) and refactorised on it
+(knee.models.fem.factor.Refactorizer): the same matrix as summing the sparse matrices directly, whatever
 entries come and go between refreshes."""
 
 import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-
-from models.fem.factor import Refactorizer, symmetric_from_lower
-from models.fem.system import SystemAssembler
+from knee.models.fem.factor import Refactorizer, symmetric_from_lower
+from knee.models.fem.system import SystemAssembler
 
 
 def _sym(n, density, seed):

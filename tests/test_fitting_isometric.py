@@ -2,11 +2,10 @@
 
 import numpy as np
 import pytest
-
-from fitting.isometric import isometric_fibre
-from fitting.optimize import synthetic_motion
-from models.mechanism import load_model
-from toolkit.errors import KneeInputError
+from knee.fitting.isometric import isometric_fibre
+from knee.fitting.optimize import synthetic_motion
+from knee.foundations.errors import KneeInputError
+from knee.models.mechanism import load_model
 
 
 def _area(centre, n, radius, rng):
@@ -39,7 +38,7 @@ def test_noisy_motion_and_bundle_restriction():
     fib = isometric_fibre(fa, ta, meas.tf)
     # with fluoroscopy-like noise the point found is not the true one, but over the true motion the
     # fibre found is nearly isometric, far more than a typical pair of the areas
-    from toolkit.conventions import joint_to_pose
+    from knee.foundations.conventions import joint_to_pose
 
     T = joint_to_pose(truth.tf)
     L = np.linalg.norm(fib.femur - (T[:, :3, :3] @ fib.tibia + T[:, :3, 3]), axis=1)

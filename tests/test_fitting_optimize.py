@@ -2,22 +2,30 @@
 
 import numpy as np
 import pytest
-
-from fitting.optimize import (NOISE_SD, REJECTED, TFFit, _ball, fit_tf, motion_mae, noise_weights,
-                              perturb_endpoints, synthetic_motion)
-from models.mechanism import load_model
+from knee.fitting.optimize import (
+    NOISE_SD,
+    REJECTED,
+    TFFit,
+    bounded_ball,
+    fit_tf,
+    motion_mae,
+    noise_weights,
+    perturb_endpoints,
+    synthetic_motion,
+)
+from knee.models.mechanism import load_model
 
 
 def test_ball_map_stays_inside_and_its_derivative():
     rng = np.random.default_rng(0)
     w = np.vstack([rng.normal(0, 3, (50, 3)), [[0, 0, 0], [50, -40, 30], [1e-9, 0, 0]]])
-    off, J = _ball(w, 2.0)
+    off, J = bounded_ball(w, 2.0)
     assert np.all(np.linalg.norm(off, axis=1) < 2.0 + 1e-12)
     h = 1e-6
     for k in range(3):
         e = np.zeros(3)
         e[k] = h
-        fd = (_ball(w + e, 2.0)[0] - _ball(w - e, 2.0)[0]) / (2 * h)
+        fd = (bounded_ball(w + e, 2.0)[0] - bounded_ball(w - e, 2.0)[0]) / (2 * h)
         np.testing.assert_allclose(J[:, :, k], fd, atol=1e-7)
 
 
@@ -46,8 +54,8 @@ def test_exact_jacobian_matches_finite_differences():
 
 
 def test_bad_motion_and_unreachable_fits_are_clear_errors():
-    from fitting.optimize import Motion
-    from toolkit.errors import KneeInputError
+    from knee.fitting.optimize import Motion
+    from knee.foundations.errors import KneeInputError
 
     with pytest.raises(KneeInputError, match="at least two finite frames"):
         TFFit(load_model("volunteer"), Motion(np.zeros((1, 6))))

@@ -9,24 +9,45 @@ import sys
 import numpy as np
 import pytest
 import trimesh
-
-from fitting.frames import SideError, femur_frame, patella_frame, tibia_frame
-from fitting.optimize import Motion, fit_tf, noise_weights, synthetic_motion
-from fitting.pipeline import (align_mri, anatomical_frames, contact_spheres, first_estimate, helical_axis,
-                              run_fit, Geometry)
-from fitting.subject import load_subject
-from fitting.synthetic import BONE_LANDMARKS, make_subject
-from models.mechanism import Mechanism
-from models.mechanism.params import load_model
-from toolkit.conventions import rot_x, rot_y, rot_z, transform_points
-from toolkit.errors import KneeInputError
-from toolkit.imaging import (read_markups, read_motion_csv, read_surface, surface_space, write_markups,
-                             write_motion_csv, write_surface)
+from knee.app.reports.fit import check_output_folder, write_outputs
+from knee.fitting.frames import SideError, femur_frame, patella_frame, tibia_frame
+from knee.fitting.optimize import Motion, fit_tf, noise_weights, synthetic_motion
+from knee.fitting.pipeline import (
+    Geometry,
+    align_mri,
+    anatomical_frames,
+    contact_spheres,
+    first_estimate,
+    fit_subject,
+    helical_axis,
+)
+from knee.fitting.subject import load_subject
+from knee.fitting.synthetic import BONE_LANDMARKS, make_subject
+from knee.foundations.conventions import rot_x, rot_y, rot_z, transform_points
+from knee.foundations.errors import KneeInputError
+from knee.foundations.imaging import (
+    read_markups,
+    read_motion_csv,
+    read_surface,
+    surface_space,
+    write_markups,
+    write_motion_csv,
+    write_surface,
+)
+from knee.models.mechanism import Mechanism
+from knee.models.mechanism.params import load_model
 
 
 @pytest.fixture(scope="module")
 def subject_dir(tmp_path_factory):
     return make_subject(tmp_path_factory.mktemp("subj") / "s", seed=0)
+
+
+def run_fit(subject_dir, out_dir, recording=True, figure=True, **kw):
+    """As ``knee fit``: the output folder checked, the fit, its files; returns (outcome, files)."""
+    check_output_folder(subject_dir, out_dir, force=False)
+    o = fit_subject(subject_dir, **kw)
+    return o, write_outputs(o, out_dir, recording=recording, figure=figure)
 
 
 @pytest.fixture(scope="module")
@@ -141,19 +162,19 @@ def test_steps_recover_the_synthetic_geometry(subject_dir):
     le = geo.to_bone(s.ct_landmarks.get("LE")[None], "femur", "ct")[0]
     np.testing.assert_allclose(le, BONE_LANDMARKS["femur"]["LE"], atol=1e-9)
     for b, a in align_mri(s).items():  # 0.3 mm identification noise on the MRI fiducials
-        assert 0.0 < max(a["fre"].values()) < 1.0
+        assert 0.0 < max(a.fre.values()) < 1.0
     c = contact_spheres(s, geo)
     for side, name in (("lateral", "lc"), ("medial", "mc")):
         lk = truth.link(name)
-        assert c[side]["surface"] == lk.tibia_surface
-        assert c[side]["femur"]["radius"] == pytest.approx(lk.femur_radius, abs=0.02)
-        assert c[side]["length"] == pytest.approx(lk.length, abs=0.3)
-        assert np.linalg.norm(c[side]["femur"]["centre"] - lk.femur) < 0.8  # alignment noise only
-        assert np.linalg.norm(c[side]["tibia"]["centre"] - lk.tibia) < 0.8
+        assert c[side].surface == lk.tibia_surface
+        assert c[side].femur.radius == pytest.approx(lk.femur_radius, abs=0.02)
+        assert c[side].length == pytest.approx(lk.length, abs=0.3)
+        assert np.linalg.norm(c[side].femur.centre - lk.femur) < 0.8  # alignment noise only
+        assert np.linalg.norm(c[side].tibia.centre - lk.tibia) < 0.8
     ax = helical_axis(s, geo)
     n_true = truth.pf.axis_femur / np.linalg.norm(truth.pf.axis_femur)
-    assert math.degrees(math.acos(min(1.0, ax["n"] @ n_true))) < 1.0
-    assert np.linalg.norm(ax["q"] - truth.pf.point_femur) < 1.0
+    assert math.degrees(math.acos(min(1.0, ax.n @ n_true))) < 1.0
+    assert np.linalg.norm(ax.q - truth.pf.point_femur) < 1.0
 
 
 def test_first_estimate_is_within_reach_and_assembles_near_extension(subject_dir):
@@ -175,10 +196,10 @@ def test_tendon_centroids_are_projected_onto_the_ct_surfaces(subject_dir, tmp_pa
     (d / "subject.toml").write_text(toml)
     s = load_subject(d)
     first, info = first_estimate(s)
-    from models.fem.geometry import SurfaceQuery
+    from knee.foundations.surfaces import SurfaceQuery
 
     for bone, p in (("tibia", first.pf.tendon_tibia), ("patella", first.pf.tendon_patella)):
-        mesh = s.ct[bone].copy().apply_transform(np.linalg.inv(info["frames"][bone]))
+        mesh = s.ct[bone].copy().apply_transform(np.linalg.inv(info.frames[bone]))
         assert abs(SurfaceQuery.of(mesh).signed_distance(p[None])[0]) < 1e-3
 
 
@@ -193,22 +214,22 @@ def test_fit_same_seed_same_result(subject_dir):
 # ---------------------------------------------------------------------------------------------- whole fit
 
 def test_pipeline_outputs_and_accuracy(fitted, subject_dir):
-    o = fitted
+    o, files = fitted
     for key in ("first_estimate", "fitted", "report_json", "report_md", "figure", "recording"):
-        assert o.files[key].is_file() and o.files[key].stat().st_size > 0
-    p = load_model(o.files["fitted"])  # loadable by `knee sweep`
+        assert files[key].is_file() and files[key].stat().st_size > 0
+    p = load_model(files["fitted"])  # loadable by `knee sweep`
     assert p.has_pf and Mechanism(p).in_range(math.radians(120))
-    rep = json.loads(o.files["report_json"].read_text())
+    rep = json.loads(files["report_json"].read_text())
     # the fit improves on the measured motion over the first estimate
     fe, ff = o.first_errors, o.fitted_errors
     if fe is not None:
-        assert np.mean(ff["tf"]["mae"][1:]) < np.mean(fe["tf"]["mae"][1:])
+        assert np.mean(ff.tf.mae[1:]) < np.mean(fe.tf.mae[1:])
     # against the noise-free truth (measured with seed 0: TF 0.52/0.45 deg, 0.12/0.20/0.22 mm; PF <= 0.6)
     t = o.truth_errors
-    assert np.all(t["tf"]["mae"][1:3] < 0.8) and np.all(t["tf"]["mae"][3:] < 0.5), t["tf"]["mae"]
-    assert np.all(t["pf"]["mae"][:3] < 1.0) and np.all(t["pf"]["mae"][3:] < 0.5), t["pf"]["mae"]
-    assert rep["fitted_vs_truth"]["tf"]["adduction"]["mae"] == pytest.approx(t["tf"]["mae"][1])
-    assert "| TF | MAE | input |" in o.files["report_md"].read_text()
+    assert np.all(t.tf.mae[1:3] < 0.8) and np.all(t.tf.mae[3:] < 0.5), t.tf.mae
+    assert np.all(t.pf.mae[:3] < 1.0) and np.all(t.pf.mae[3:] < 0.5), t.pf.mae
+    assert rep["fitted_vs_truth"]["tf"]["adduction"]["mae"] == pytest.approx(t.tf.mae[1])
+    assert "| TF | MAE | input |" in files["report_md"].read_text()
     # the input folder is untouched
     assert not any(f.name in ("fitted.toml", "report.json") for f in subject_dir.rglob("*"))
 
@@ -284,10 +305,10 @@ def test_areas_as_per_vertex_labels_give_the_same_fit(subject_dir, tmp_path):
     (d / "mri/areas/femur_lateral_condyle.mrk.json").unlink()
     s2 = load_subject(d)
     geo = Geometry(anatomical_frames(s2), align_mri(s2))
-    c1 = contact_spheres(s, Geometry(anatomical_frames(s), align_mri(s)))["lateral"]["femur"]
-    c2 = contact_spheres(s2, geo)["lateral"]["femur"]
+    c1 = contact_spheres(s, Geometry(anatomical_frames(s), align_mri(s)))["lateral"].femur
+    c2 = contact_spheres(s2, geo)["lateral"].femur
     assert s2.area("femur_lateral_condyle").source.endswith(":femur_lateral_condyle")
-    np.testing.assert_allclose(c2["centre"], c1["centre"], atol=1e-4)
+    np.testing.assert_allclose(c2.centre, c1.centre, atol=1e-4)
     (d / "mri/labels/femur.json").write_text(json.dumps({"femur_lateral_condyle": [0, 1, 10 ** 7]}))
     with pytest.raises(KneeInputError, match="vertex indices outside"):
         load_subject(d).area("femur_lateral_condyle")
@@ -298,7 +319,7 @@ def test_nan_rows_are_skipped_and_counted_in_the_report(subject_dir, tmp_path):
     lines = (d / "motion.csv").read_text().splitlines()
     lines[7] = lines[7].replace(lines[7].split(",")[3], "nan", 1)
     (d / "motion.csv").write_text("\n".join(lines) + "\n")
-    o = run_fit(d, tmp_path / "out", effort="quick", recording=False, figure=False)
+    o, _ = run_fit(d, tmp_path / "out", effort="quick", recording=False, figure=False)
     rep = json.loads((tmp_path / "out/report.json").read_text())
     assert rep["motion"]["rows_skipped"] == 1 and rep["motion"]["frames_used"] == 59
     assert any("1 of 60 motion rows skipped" in w for w in o.warnings)
@@ -309,7 +330,7 @@ def test_nan_rows_are_skipped_and_counted_in_the_report(subject_dir, tmp_path):
 
 
 def test_cli_synth_subject_and_fit(tmp_path):
-    knee = [sys.executable, "-m", "toolkit.cli"]
+    knee = [sys.executable, "-m", "knee.app.cli"]
     r = subprocess.run(knee + ["synth-subject", str(tmp_path / "s"), "--seed", "4", "--frames", "30"],
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr

@@ -2,10 +2,15 @@
 
 import numpy as np
 import pytest
-
-from toolkit.conventions import cardan_to_matrix
-from toolkit.errors import KneeInputError
-from toolkit.geometry import fit_plane, fit_sphere, least_varying_pair, principal_axes, rigid_register
+from knee.foundations.conventions import cardan_to_matrix
+from knee.foundations.errors import KneeInputError
+from knee.foundations.geometry import (
+    fit_plane,
+    fit_sphere,
+    least_varying_pair,
+    principal_axes,
+    rigid_register,
+)
 
 
 def test_sphere_fit_on_a_noisy_cap():

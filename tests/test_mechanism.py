@@ -1,16 +1,14 @@
-"""The mechanism solver against independent computations (models.mechanism.reference, the closure
+"""The mechanism solver against independent computations (knee.models.mechanism.reference, the closure
 equations evaluated directly on the poses, finite differences)."""
 
 import math
 
 import numpy as np
 import pytest
-
-from models.mechanism import Mechanism, load_model
-from models.mechanism import compiled
-from models.mechanism import reference as ref
-from toolkit.conventions import joint_to_pose
-from toolkit.errors import AssemblyError
+from knee.foundations.conventions import joint_to_pose
+from knee.foundations.errors import AssemblyError
+from knee.models.mechanism import Mechanism, compiled, load_model
+from knee.models.mechanism import reference as ref
 
 DEG = np.radians
 
@@ -194,9 +192,9 @@ def test_flexion_derivative_matches_finite_differences(volunteer, generic):
 def test_compiled_and_casadi_fallback_agree(tmp_path, monkeypatch):
     monkeypatch.setenv("KNEE_CACHE_DIR", str(tmp_path))
     p = load_model("volunteer")
-    b = compiled.Backend(p.kinds, p.has_pf, compile=True)
+    b = compiled.new_backend(p.kinds, p.has_pf, compile=True)
     assert b.compiled and b.library.parent == tmp_path and b.library.is_file()
-    again = compiled.Backend(p.kinds, p.has_pf, compile=True)  # from the on-disk cache
+    again = compiled.new_backend(p.kinds, p.has_pf, compile=True)  # from the on-disk cache
     assert again.library == b.library
     fast = Mechanism(p, compile=True)
     slow = Mechanism(p, compile=False)
@@ -208,11 +206,37 @@ def test_compiled_and_casadi_fallback_agree(tmp_path, monkeypatch):
     assert fast.assembly_range == pytest.approx(slow.assembly_range, abs=1e-8)
 
 
+def test_two_mechanisms_of_one_structure_in_two_threads(volunteer):
+    """Each thread solves with its own buffers: two mechanisms of one structure swept concurrently, many
+    times, give exactly what each gives alone (shared buffers would mix their parameters and states)."""
+    import threading
+
+    from knee.fitting.optimize import perturb_endpoints
+
+    other = Mechanism(perturb_endpoints(volunteer.params, 1.0, 2.0, seed=3))
+    al = DEG(np.arange(0, 100, 1.0))
+    expected = {id(m): m.sweep(al).tf for m in (volunteer, other)}
+    bad = []
+
+    def work(m):
+        for _ in range(40):
+            if not np.array_equal(m.sweep(al).tf, expected[id(m)]):
+                bad.append(m.params.name)
+
+    threads = [threading.Thread(target=work, args=(m,)) for m in (volunteer, other, volunteer, other)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert not bad
+    assert not np.allclose(expected[id(volunteer)], expected[id(other)])
+
+
 def test_no_compiler_falls_back(monkeypatch, tmp_path):
     monkeypatch.setenv("KNEE_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(compiled, "find_compiler", lambda: None)
     p = load_model("generic-sancisi2017")
-    b = compiled.Backend(p.kinds, p.has_pf, compile=True)
+    b = compiled.new_backend(p.kinds, p.has_pf, compile=True)
     assert not b.compiled and b.library is None
     assert not list(tmp_path.iterdir())
 
@@ -236,7 +260,7 @@ def test_stored_initial_pose_is_the_multistart_branch(volunteer):
 
 
 def test_jump_detector_on_synthetic_paths():
-    from models.mechanism.solver import detect_jumps
+    from knee.models.mechanism.solver import detect_jumps
 
     a = DEG(np.arange(1.0, 21.0))
     x = np.column_stack([0.01 * a, -0.2 + 0.05 * a, 0.3 * np.degrees(a), -27 + 0.0 * a, 0.1 * np.degrees(a)])

@@ -6,12 +6,19 @@ import sys
 
 import numpy as np
 import pytest
-
-from models.mechanism.params import load_model
-from models.osteotomy import (FUJISAWA, Cut, alignment, apply_cut, default_cut, moved_side, osteotomy,
-                              wedge_transform)
-from models.phantom import build_phantom
-from toolkit.errors import KneeInputError
+from knee.foundations.errors import AssemblyError, KneeInputError
+from knee.models.mechanism.params import load_model
+from knee.models.osteotomy import (
+    FUJISAWA,
+    Cut,
+    alignment,
+    apply_cut,
+    default_cut,
+    moved_side,
+    osteotomy,
+    wedge_transform,
+)
+from knee.models.phantom import build_phantom
 
 
 @pytest.fixture(scope="module")
@@ -36,8 +43,8 @@ def test_wedge_is_a_rotation_about_the_hinge_that_opens_opposite_it(vol):
 def test_alignment_closed_form_for_a_straight_limb(vol):
     """Hip and ankle on the long axes and a tibia at zero adduction: HKA equals the knee's own frontal
     angle, and the weight-bearing line crosses the plateau where the geometry says."""
-    from models.mechanism import Mechanism
-    from toolkit.conventions import joint_to_pose
+    from knee.foundations.conventions import joint_to_pose
+    from knee.models.mechanism import Mechanism
 
     p, ph = vol
     mech = Mechanism(p)
@@ -56,17 +63,34 @@ def test_alignment_closed_form_for_a_straight_limb(vol):
 def test_opening_wedge_moves_the_weight_bearing_line_laterally(vol):
     p, ph = vol
     res = osteotomy(p, default_cut("tibia", ph.tibia, 5.0), release=("mcl",))
-    b, a = res["align_before"], res["align_after"]
+    b, a = res.align_before, res.align_after
     assert a.wbl_percent > b.wbl_percent + 10 and a.hka_deg < b.hka_deg  # toward valgus
-    assert "mcl tibia point" in res["moved"] and "ankle centre" in res["moved"]
+    assert "mcl tibia point" in res.moved and "ankle centre" in res.moved
     assert abs(a.wbl_percent - FUJISAWA) < abs(b.wbl_percent - FUJISAWA)
     # the unmoved links are untouched; the knee still assembles through 0..120 deg
-    for lb, la in zip(p.links, res["params"].links):
+    for lb, la in zip(p.links, res.params.links):
         if lb.name in ("acl", "pcl", "lc", "mc"):
             np.testing.assert_array_equal(lb.tibia, la.tibia)
-    assert res["after"].in_range(0.0) and res["after"].in_range(math.radians(120))
+    assert res.after.in_range(0.0) and res.after.in_range(math.radians(120))
+    # the README's example, pinned: the weight-bearing line from 42 % to 66 % of the plateau
+    assert (b.wbl_percent, a.wbl_percent) == (pytest.approx(42.15, abs=0.05), pytest.approx(66.29, abs=0.05))
     zero = osteotomy(p, default_cut("tibia", ph.tibia, 0.0))  # a zero wedge changes nothing
-    assert zero["align_after"].wbl_percent == pytest.approx(zero["align_before"].wbl_percent, abs=1e-9)
+    assert zero.align_after.wbl_percent == pytest.approx(zero.align_before.wbl_percent, abs=1e-9)
+
+
+def test_the_lateral_share_of_stance_contact_follows_the_weight_bearing_line(vol):
+    """The README's example: the 5 deg opening wedge moves the lateral share of the stance contact force in
+    the normative gait from 0.45 to 0.64 (pinned), the two shares summing to one."""
+    from knee.models.gait import normative_trial
+    from knee.models.osteotomy import compare, gait_contact_summary
+
+    p, ph = vol
+    res = osteotomy(p, default_cut("tibia", ph.tibia, 5.0), release=("mcl",))
+    cmp = compare(res, normative_trial(72.0))
+    before, after = gait_contact_summary(cmp.gait_before), gait_contact_summary(cmp.gait_after)
+    assert before["lc"].mean_share == pytest.approx(0.450, abs=0.005)
+    assert after["lc"].mean_share == pytest.approx(0.638, abs=0.005)
+    assert before["lc"].mean_share + before["mc"].mean_share == pytest.approx(1.0)
 
 
 def test_bad_cuts_are_clear_errors(vol):
@@ -80,14 +104,14 @@ def test_bad_cuts_are_clear_errors(vol):
                          good.hinge_axis, 8.0))
     with pytest.raises(KneeInputError, match="within"):
         osteotomy(p, Cut("tibia", good.plane_point, good.plane_normal, good.hinge_point, good.hinge_axis, 45.0))
-    with pytest.raises(KneeInputError, match="does not assemble.*--release mcl"):
+    with pytest.raises(AssemblyError, match="does not assemble.*release mcl"):
         osteotomy(p, good)  # the MCL insertion moves 4 mm: an isometric link cannot follow
     with pytest.raises(KneeInputError, match="not a ligament"):
         apply_cut(p, good, release=("lc",))
 
 
 def test_cli_osteotomy(tmp_path):
-    knee = [sys.executable, "-m", "toolkit.cli", "osteotomy", "volunteer"]
+    knee = [sys.executable, "-m", "knee.app.cli", "osteotomy", "volunteer"]
     r = subprocess.run(knee + ["--angle", "5", "--release", "mcl", "--out", str(tmp_path / "o")],
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr

@@ -4,10 +4,17 @@ import math
 
 import numpy as np
 import pytest
-
-from models.mechanism.params import (ModelFileError, UnknownModelError, bundled_models, dumps_toml,
-                                     load_model, load_toml, parameter_names, save_toml)
-from models.mechanism.params import N_PARAMS
+from knee.models.mechanism.params import (
+    N_PARAMS,
+    ModelFileError,
+    UnknownModelError,
+    bundled_models,
+    dumps_toml,
+    load_model,
+    load_toml,
+    parameter_names,
+    save_toml,
+)
 
 VOLUNTEER = load_model("volunteer").to_toml()
 

@@ -3,9 +3,8 @@
 import numpy as np
 import open3d as o3d
 import pytest
-
-from models.phantom import build_phantom, posed_bones
-from toolkit.conventions import joint_to_pose
+from knee.foundations.conventions import joint_to_pose
+from knee.models.phantom import build_phantom, posed_bones
 
 
 def _signed_distance(mesh, points):

@@ -4,15 +4,23 @@ import math
 
 import numpy as np
 import pytest
+from knee.foundations.conventions import joint_to_pose
+from knee.foundations.errors import AssemblyError, KneeInputError
+from knee.models.contact import (
+    CARTILAGE,
+    Cartilage,
+    condyle_cap,
+    effective_modulus,
+    effective_radius,
+    foundation,
+    foundation_closed_form_approach,
+    foundation_force,
+    hertz,
+)
+from knee.models.contact import _tibial_depth as _depth
+from knee.models.mechanism import Mechanism
+from knee.models.statics import member_lines, solve_statics
 from scipy.integrate import quad
-
-from models.contact import _tibial_depth as _depth
-from models.contact import (CARTILAGE, Cartilage, condyle_cap, effective_modulus, effective_radius, foundation,
-                            foundation_closed_form_approach, foundation_force, hertz)
-from models.mechanism import Mechanism
-from models.statics import member_lines, solve_statics
-from toolkit.conventions import joint_to_pose
-from toolkit.errors import KneeInputError
 
 
 def test_large_sweep_steps_stay_on_the_branch(volunteer):
@@ -68,7 +76,7 @@ def test_statics_flags_members_that_cannot_carry_the_load(volunteer):
     assert "every ligament is slack or pushing" in slack.flags[0] and not slack.ok[0]
     with pytest.raises(KneeInputError, match="patella"):
         solve_statics(Mechanism.from_name("generic-sancisi2017"), 0.3, [0, 1, 0])
-    with pytest.raises(KneeInputError):
+    with pytest.raises(AssemblyError, match="outside the assembly range"):
         solve_statics(volunteer, math.radians(170.0), [0, 1, 0])
 
 
@@ -122,29 +130,54 @@ def test_elastic_foundation_balances_the_load(surface, rt):
     assert net[2] == pytest.approx(100.0, rel=0.02)
 
 
-def test_contact_along_flexion_is_plausible(volunteer):
-    """Hertz on the model's condyles under its statics: areas of tens to hundreds of mm^2 and pressures
-    of a few MPa for a body-weight load (the ranges reported for knee cartilage)."""
-    st = solve_statics(volunteer, np.radians([10.0, 60.0]), [0.0, 700.0, 0.0])
-    lc = volunteer.params.link("lc")
-    r = hertz(-st.force("lc"), lc.femur_radius, lc.tibia_radius, lc.tibia_surface)
-    assert np.all((r.area > 20) & (r.area < 2000)) and np.all((r.peak > 0.3) & (r.peak < 20))
+def test_foundation_modulus_is_the_confined_layers():
+    """The elastic foundation's K is the confined (P-wave) modulus lambda + 2 mu of the cartilage over the
+    two layers' thickness 2 h (Blankevoort et al. 1991): 4.741 N/mm^3 for E = 5 MPa, nu = 0.45, h = 2 mm."""
+    E, nu, h = 5.0, 0.45, 2.0
+    lam, mu = E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
+    assert Cartilage(E, nu, h).foundation_modulus == pytest.approx((lam + 2 * mu) / (2 * h), rel=1e-12)
+    assert CARTILAGE.foundation_modulus == pytest.approx(4.7414, abs=1e-4)
     assert effective_modulus() == pytest.approx(5.0 / (2 * (1 - 0.45 ** 2)))
+
+
+def test_contact_along_flexion_matches_the_closed_forms(volunteer):
+    """``knee contact``'s numbers at each angle: the statics' compressive contact force, its Hertz area and
+    peak pressure by the closed form written out here (Johnson 1985), and the elastic foundation's contact
+    area by its small-contact closed form (a paraboloid on a foundation: F = pi K R* d^2 and the contact
+    circle's area 2 pi R* d), within the articular mesh's discretisation."""
+    from knee.models.contact import contact_along_flexion
+
+    res = contact_along_flexion(volunteer, 700.0, flexion_deg=[10.0, 45.0, 90.0])
+    st = solve_statics(volunteer, np.radians([10.0, 45.0, 90.0]), [0.0, 700.0, 0.0])
+    E_star = 5.0 / (2 * (1 - 0.45 ** 2))
+    K = 4.7414
+    for name in ("lc", "mc"):
+        lk = volunteer.params.link(name)
+        c = res.contacts[name]
+        np.testing.assert_allclose(c.force, np.maximum(-st.force(name), 0.0), rtol=1e-12)
+        assert np.all(c.force > 100.0)  # a body-weight load is carried by both condyles
+        sign = 1.0 if lk.tibia_surface == "convex" else -1.0
+        R_star = 1.0 / (1.0 / lk.femur_radius + sign / lk.tibia_radius)
+        a = (3 * c.force * R_star / (4 * E_star)) ** (1 / 3)
+        np.testing.assert_allclose(c.hertz.area, np.pi * a ** 2, rtol=1e-9)
+        np.testing.assert_allclose(c.hertz.peak, 3 * c.force / (2 * np.pi * a ** 2), rtol=1e-9)
+        d = np.sqrt(c.force / (np.pi * K * R_star))
+        np.testing.assert_allclose(c.foundation.area, 2 * np.pi * R_star * d, rtol=0.1)
 
 
 @pytest.mark.parametrize("surface,rt", [("convex", 55.0), ("concave", 55.0)])
 def test_tabulated_foundation_maps_match_the_root_solve(surface, rt):
     """The vectorised maps (force tabulated against approach, interpolated) agree with Brent's solve per load."""
-    from models.contact import foundation_maps
+    from knee.models.contact import foundation_maps
 
     cap = condyle_cap(24.0, subdivisions=5)
     loads = np.array([0.0, 150.0, 700.0, 1900.0])
     m = foundation_maps(loads, 24.0, rt, surface, mesh=cap)
     for k, F in enumerate(loads):
         r = foundation(F, 24.0, rt, surface, cap)
-        assert m["approach"][k] == pytest.approx(r.approach, rel=5e-3, abs=1e-9)
-        assert m["peak"][k] == pytest.approx(r.peak, rel=5e-3, abs=1e-9)
-        net, _ = foundation_force(cap, 24.0, rt, surface, m["approach"][k])
+        assert m.approach[k] == pytest.approx(r.approach, rel=5e-3, abs=1e-9)
+        assert m.peak[k] == pytest.approx(r.peak, rel=5e-3, abs=1e-9)
+        net, _ = foundation_force(cap, 24.0, rt, surface, m.approach[k])
         assert net[2] == pytest.approx(F, rel=1e-2, abs=1e-9)
     with pytest.raises(KneeInputError, match="exceeds"):
         foundation_maps([1e7], 24.0, rt, surface, mesh=cap)

@@ -9,10 +9,9 @@ tetrahedra kept whose centroid lies inside the surface and whose shape is not a 
 from __future__ import annotations
 
 import numpy as np
+from knee.foundations.errors import KneeInputError
+from knee.foundations.surfaces import SurfaceQuery
 from scipy.spatial import Delaunay, cKDTree
-
-from models.fem.geometry import SurfaceQuery
-from toolkit.errors import KneeInputError
 
 
 def _spaced_subsample(points, spacing, seed=0):

@@ -1,5 +1,6 @@
-"""The depth input of the association model: a virtual RGB-D camera, real depth images, point clouds,
-and the rigid (ICP) registration of the model's surface to the observed points (seed 000, 2.3 and 3).
+"""A virtual RGB-D camera for the association model's cases (seed 000, 2.3 and 3): a pinhole camera,
+depth images rendered from a mesh, and a depth-noise model. Real depth images and point clouds are read
+by :mod:`knee.foundations.pointclouds`.
 
 Camera conventions: a pinhole camera with intrinsics ``K`` (3, 3) (pixels); the pose ``T_world_cam``
 (4, 4) gives the camera's axes in the world (x right, y down, z forward: the optical axis); a depth
@@ -10,12 +11,10 @@ image holds, per pixel, the depth along the optical axis in mm (0 where nothing 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import open3d as o3d
-
-from toolkit.errors import KneeInputError
+from knee.foundations.errors import KneeInputError
 
 
 @dataclass
@@ -98,76 +97,31 @@ class DepthNoise:
         return d
 
 
-def backproject(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray | None = None,
-                depth_scale: float = 1.0, max_depth: float | None = None) -> np.ndarray:
-    """Points (P, 3) in mm, in the world (or the camera frame without a pose), from a depth image.
-
-    ``depth_scale`` converts the image's units to mm (e.g. 1.0 for a 16-bit image in mm, 1000 for one in
-    metres). Pixels with depth 0 (or beyond ``max_depth`` mm) are skipped.
-    """
-    d = np.asarray(depth, dtype=float) * depth_scale
-    if d.ndim != 2:
-        raise KneeInputError(f"a depth image must be 2-D, got shape {d.shape}")
-    K = np.asarray(K, dtype=float)
-    if K.shape != (3, 3) or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise KneeInputError("intrinsics must be a 3x3 matrix with positive focal lengths")
-    v, u = np.nonzero((d > 0) & (np.isfinite(d)) & ((d <= max_depth) if max_depth else True))
-    z = d[v, u]
-    x = (u + 0.5 - K[0, 2]) / K[0, 0] * z
-    y = (v + 0.5 - K[1, 2]) / K[1, 1] * z
-    p = np.column_stack([x, y, z])
-    if T_world_cam is not None:
-        T = np.asarray(T_world_cam, float)
-        p = p @ T[:3, :3].T + T[:3, 3]
-    return p
+def default_camera(distance: float = 350.0, azimuth_deg: float = 35.0, elevation_deg: float = 30.0,
+                   target=(0.0, -20.0, 0.0)) -> Camera:
+    """An oblique camera ``distance`` mm from the knee, anterior, turned ``azimuth`` towards lateral and
+    raised ``elevation`` towards proximal (femur frame)."""
+    az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
+    d = np.array([np.cos(el) * np.cos(az), np.sin(el), np.cos(el) * np.sin(az)])
+    t = np.asarray(target, float)
+    return Camera.looking_at(t + distance * d, t, up=(0.0, 1.0, 0.0))
 
 
-def load_depth_image(path, K, T_world_cam=None, depth_scale: float = 1.0) -> np.ndarray:
-    """Points from a depth image file (16-bit PNG or a .npy array) with intrinsics ``K``."""
-    path = Path(path)
-    if not path.is_file():
-        raise KneeInputError(f"{path}: no such depth image")
-    if path.suffix.lower() == ".npy":
-        depth = np.load(path)
-    else:
-        img = o3d.io.read_image(str(path))
-        depth = np.asarray(img)
-        if depth.size == 0:
-            raise KneeInputError(f"{path}: not a readable depth image")
-    return backproject(depth, K, T_world_cam, depth_scale)
+#: Named camera placements: azimuth towards lateral (deg), 350 mm away, raised 30 deg.
+CAMERA_PLACEMENTS = {"oblique": 35.0, "frontal": 0.0, "lateral": 70.0}
 
 
-def load_point_cloud(path) -> np.ndarray:
-    """Points (P, 3) in mm from a point-cloud file open3d reads (.ply, .pcd, .xyz, .pts)."""
-    path = Path(path)
-    if not path.is_file():
-        raise KneeInputError(f"{path}: no such point-cloud file")
-    pc = o3d.io.read_point_cloud(str(path))
-    pts = np.asarray(pc.points, dtype=float)
-    if len(pts) == 0:
-        raise KneeInputError(f"{path}: no points read (unsupported or empty file)")
-    return pts
-
-
-def icp(source_points, target_points, init=None, max_distance: float = 20.0, iterations: int = 60,
-        target_normals=None):
-    """Rigid registration of ``source_points`` onto ``target_points`` (point-to-plane ICP, open3d).
-    ``target_normals`` (P, 3): the target's normals when known (e.g. the faces' normals of points sampled
-    on a mesh); estimated from the points otherwise.
-
-    Returns
-    -------
-    T : (4, 4) float, the transform to apply to the source; fitness (fraction of source points matched)
-    and inlier RMSE (mm).
-    """
-    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(source_points, float)))
-    dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(target_points, float)))
-    if target_normals is None:
-        dst.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=8.0, max_nn=30))
-    else:
-        dst.normals = o3d.utility.Vector3dVector(np.asarray(target_normals, float))
-    reg = o3d.pipelines.registration.registration_icp(
-        src, dst, max_distance, np.eye(4) if init is None else np.asarray(init, float),
-        o3d.pipelines.registration.TransformationEstimationPointToPlane(),
-        o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=iterations))
-    return np.asarray(reg.transformation), float(reg.fitness), float(reg.inlier_rmse)
+def camera_from_spec(text: str) -> Camera:
+    """A camera from a placement name (``oblique``, ``frontal``, ``lateral``: 350 mm away, raised 30 deg)
+    or ``AZIMUTH,ELEVATION,DISTANCE`` (deg, deg, mm)."""
+    t = str(text).strip().lower()
+    if t in CAMERA_PLACEMENTS:
+        return default_camera(azimuth_deg=CAMERA_PLACEMENTS[t])
+    try:
+        az, el, dist = (float(v) for v in t.split(","))
+    except ValueError:
+        raise KneeInputError(f"camera must be one of {', '.join(CAMERA_PLACEMENTS)} or AZIMUTH,ELEVATION,DISTANCE "
+                             f"(deg, deg, mm), got {text!r}") from None
+    if not (np.isfinite([az, el, dist]).all() and 100.0 <= dist <= 2000.0 and -80.0 <= el <= 80.0):
+        raise KneeInputError(f"camera distance must be 100-2000 mm and elevation within +-80 deg, got {text!r}")
+    return default_camera(distance=dist, azimuth_deg=az, elevation_deg=el)

@@ -24,8 +24,8 @@ Hexahedron node order (local coordinates in {-1, 1}^3):
 from __future__ import annotations
 
 import numpy as np
-
-from toolkit.errors import KneeInputError
+from knee.foundations.errors import KneeInputError
+from knee.models.fem.material import elasticity_matrix
 
 HEX_CORNERS = np.array([[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1],
                         [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], dtype=float)
@@ -274,8 +274,6 @@ class CorotationalElements:
     """
 
     def __init__(self, X, cells, E, nu, weights=None):
-        from models.fem.material import elasticity_matrix
-
         self.X = np.asarray(X, dtype=float)
         self.cells = np.asarray(cells, dtype=np.int64)
         if self.cells.ndim != 2 or self.cells.shape[1] not in (4, 8):

@@ -80,7 +80,7 @@ class SparseFactor:
 
 class Refactorizer:
     """Factorisations of a sequence of matrices given by their lower triangles on patterns identified by a
-    version number (:class:`models.fem.system.SystemAssembler`): while the version stays the same, CHOLMOD's
+    version number (:class:`knee.models.fem.system.SystemAssembler`): while the version stays the same, CHOLMOD's
     sparse matrix is only given new values and its symbolic analysis (ordering, supernodes) is reused, so
     a refresh costs the numeric factorisation alone.
 

@@ -10,12 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+from knee.foundations.errors import KneeInputError
+from knee.models.fem.assembly import PatternAssembler
+from knee.models.fem.elements import CorotationalElements
+from knee.models.fem.mapping import TrilinearMapping
 from scipy.spatial import cKDTree
-
-from models.fem.assembly import PatternAssembler
-from models.fem.elements import CorotationalElements
-from models.fem.mapping import TrilinearMapping
-from toolkit.errors import KneeInputError
 
 
 class _Scatter:
@@ -223,7 +222,7 @@ class MappedPenaltyContact:
         holding points of A with every node of a cell holding points of B (and with each other), for the
         cell pairs whose rest boxes are within the activation distance plus ``margin`` (mm) of each other
         along every axis, so that pairs switching on and off rarely change the matrix's pattern
-        (:mod:`models.fem.system`).
+        (:mod:`knee.models.fem.system`).
         Values are placeholders; only the pattern counts."""
         ca, cb = np.unique(self.ma.cell), np.unique(self.mb.cell)
         lo, hi = self._cell_boxes
@@ -362,21 +361,3 @@ def affine_point_map(bone: "MappedBoneElasticity", points, nearest: int = 12, re
     w = sel * (lam @ Xh.T)  # (P, Nb)
     return MatrixMapping(sp.csr_matrix(w) @ bone.map.J)
 
-
-class MappedTargets:
-    """Penalty springs (``k`` N/mm each) pulling mapped points to target positions: the prescribed bone
-    nodes of a quasi-static solve. ``targets`` (P, 3) can be moved between steps."""
-
-    def __init__(self, mapping, targets, k=100.0):
-        self.map = mapping
-        self.targets = np.array(targets, float)
-        self.k = float(k)
-
-    def forces(self, x):
-        return -self.k * self.map.apply_transpose(self.map.apply(x) - self.targets)
-
-    def apply(self, p):
-        return self.k * self.map.apply_transpose(self.map.apply(p))
-
-    def matrix(self):
-        return (self.k * (self.map.J3.T @ self.map.J3)).tocsr()

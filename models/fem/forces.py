@@ -19,16 +19,15 @@ provide their stiffness (k J^T J over the active points) to the implicit solve.
 from __future__ import annotations
 
 import numpy as np
+from knee.foundations.geometry import principal_axes as _principal_axes
+from knee.models.fem.mapping import TrilinearMapping
 from scipy.spatial import cKDTree
-
-from models.fem.mapping import TrilinearMapping
-from toolkit.geometry import principal_axes as _principal_axes
 
 PAPER_BONE_FORCES = (9000.0, 23000.0, 3000.0, 6000.0)
 
 
 def principal_axes(points) -> np.ndarray:
-    """Principal axes (3, 3), rows by decreasing variance (toolkit.geometry.principal_axes)."""
+    """Principal axes (3, 3), rows by decreasing variance (knee.foundations.geometry.principal_axes)."""
     return _principal_axes(points)[1]
 
 

@@ -17,11 +17,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import trimesh
+from knee.foundations.errors import KneeInputError
+from knee.foundations.surfaces import SurfaceQuery
 
-from models.fem.geometry import SurfaceQuery
-from toolkit.errors import KneeInputError
-
-INSIDE, BOUNDARY, OUTSIDE = 0, 1, 2
+INSIDE, BOUNDARY = 0, 1  # a cell's status (cells outside the skin are dropped)
 
 
 @dataclass
@@ -31,7 +31,7 @@ class SparseGrid:
     Attributes
     ----------
     X : (N, 3) float          rest node positions
-    cells : (E, 8) int        kept cells (node order of :mod:`models.fem.elements`)
+    cells : (E, 8) int        kept cells (node order of :mod:`knee.models.fem.elements`)
     weights : (E,) float      inside fraction of each kept cell
     status : (E,) int         INSIDE or BOUNDARY
     axes : tuple of three 1-D float arrays   node coordinates of the full grid along x, y, z
@@ -138,8 +138,6 @@ def closed_skin(skin):
     a skin that stays open raises (inside and outside are undefined for it)."""
     if skin.is_watertight:
         return skin
-    import trimesh
-
     merged = skin.copy()
     merged.merge_vertices()
     filled = _fill_holes(np.asarray(merged.vertices, float), np.asarray(merged.faces, np.int64))

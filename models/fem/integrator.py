@@ -6,12 +6,12 @@ One linear solve per step: with C = a M + b K and the forces linearised about th
 
 The matrix is never assembled per step: the conjugate-gradient solve applies the co-rotated element
 stiffnesses directly (gather, element products, scatter), warm-started from the last velocity and
-preconditioned with a sparse factorisation of the assembled matrix (:mod:`models.fem.factor`: a supernodal
+preconditioned with a sparse factorisation of the assembled matrix (:mod:`knee.models.fem.factor`: a supernodal
 Cholesky, CHOLMOD, when available, else SuperLU's LU in symmetric mode; single-precision factors were tried and
 cost more iterations after the prior's initialisation than they saved), warped by the nodes' rotations since
-it was computed (nodal rotations: :func:`models.fem.scene.node_rotations`). The factorisation is kept
+it was computed (nodal rotations: :func:`knee.models.fem.scene.node_rotations`). The factorisation is kept
 across steps and refreshed (the fields' matrices scattered onto a lower-triangle pattern kept across
-refreshes, :mod:`models.fem.system`, built when the model is built by :meth:`ImplicitEuler.prepare`, and
+refreshes, :mod:`knee.models.fem.system`, built when the model is built by :meth:`ImplicitEuler.prepare`, and
 refactorised with the symbolic analysis reused while that pattern stays) by an amortised rule: when the
 iterations spent beyond the count right after the last refresh add up to more than the cost of a
 refactorisation (in iterations: measured, its time over an iteration's, or a fixed ``refresh_cost``); and
@@ -31,9 +31,8 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-
-from models.fem.factor import Refactorizer
-from models.fem.system import SystemAssembler
+from knee.models.fem.factor import Refactorizer
+from knee.models.fem.system import SystemAssembler
 
 
 @dataclass
@@ -51,7 +50,7 @@ class ImplicitEuler:
     mass : (N,) float
         Lumped nodal masses (tonne, with mm, N, s).
     fields : list
-        Objects with ``forces(x)``, ``apply(p)`` and ``matrix()`` (see :mod:`models.fem.fields`).
+        Objects with ``forces(x)``, ``apply(p)`` and ``matrix()`` (see :mod:`knee.models.fem.fields`).
     dt : float
         Time step (s); the paper's 0.05.
     rayleigh_mass, rayleigh_stiffness : float
@@ -88,11 +87,11 @@ class ImplicitEuler:
         #                               new pattern's one-off work left out)
         self._lu = None
         self._woodbury = None
-        self._system = None    # the matrix's kept lower-triangle pattern (models.fem.system)
+        self._system = None    # the matrix's kept lower-triangle pattern (knee.models.fem.system)
         self._refactor = None  # CHOLMOD's analysis kept while that pattern stays
         self._best_iterations = None  # CG iterations of the first step after the last refresh
         self._excess = 0.0            # iterations spent beyond that since the last refresh
-        # node_rotations() -> (N, 3, 3) rotations of the material around each node (for the warped
+        # node_rotations(x) -> (N, 3, 3) rotations of the material around each node (for the warped
         # preconditioner W LU^-1 W^T, W = rotations since the last factorisation); None: no warping
         self.node_rotations = node_rotations
         self._R_ref = None
@@ -121,8 +120,9 @@ class ImplicitEuler:
         fr = self._free.reshape(-1, 3)
         return self._full(p * fr) * fr + p * (1 - fr)
 
-    def _set_prescribed(self, mask):
-        """Nodes whose motion is prescribed this step are excluded from the solve, like fixed ones."""
+    def set_prescribed(self, mask) -> None:
+        """Exclude the nodes of ``mask`` (N,) bool from the solve, like fixed ones (``None``: none); a step
+        with ``prescribed`` sets this for its duration."""
         mask = np.zeros(len(self.x), bool) if mask is None else np.asarray(mask, bool)
         free = np.repeat(~(self.fixed | mask), 3).astype(float)
         if not np.array_equal(free, self._free):
@@ -143,7 +143,7 @@ class ImplicitEuler:
 
     def reserve_pattern(self, matrix) -> None:
         """Entries the matrix will need soon (e.g. contact pairs along a planned motion), added to the kept
-        pattern now: see :meth:`models.fem.system.SystemAssembler.reserve`."""
+        pattern now: see :meth:`knee.models.fem.system.SystemAssembler.reserve`."""
         self._assembler().reserve(matrix)
 
     def _assembler(self) -> SystemAssembler:
@@ -171,7 +171,7 @@ class ImplicitEuler:
             self._woodbury = (Z, np.linalg.inv(np.eye(U.shape[1]) / self._ck + U.T @ Z))
         else:
             self._woodbury = None
-        self._R_ref = None if self.node_rotations is None else self.node_rotations()
+        self._R_ref = None if self.node_rotations is None else self.node_rotations(self.x)
         self._best_iterations, self._excess = None, 0.0
         self.refreshes += 1
         # what a refresh costs on the kept pattern: a new pattern's one-off work (positions, analysis) left out
@@ -189,7 +189,7 @@ class ImplicitEuler:
         """z = P^-1 r: the refresh-time inverse, warped by the nodes' rotations since the refresh."""
         if self.node_rotations is None:
             return self._solve_ref
-        W = self.node_rotations() @ np.swapaxes(self._R_ref, 1, 2)  # (N, 3, 3)
+        W = self.node_rotations(self.x) @ np.swapaxes(self._R_ref, 1, 2)  # (N, 3, 3)
 
         def apply(r):  # (einsum: about three times cheaper than a batched product of 3 x 1 columns)
             z = self._solve_ref(np.einsum("nji,nj->ni", W, r.reshape(-1, 3)).ravel())
@@ -289,10 +289,10 @@ class ImplicitEuler:
         vc = np.zeros_like(x)
         if prescribed is not None:
             mask, target = prescribed
-            self._set_prescribed(mask)
+            self.set_prescribed(mask)
             vc[mask] = (np.asarray(target, float)[mask] - x[mask]) / self.dt
         else:
-            self._set_prescribed(None)
+            self.set_prescribed(None)
         rhs = (self.m[:, None] * self.v + self.dt * f)
         if prescribed is not None:
             rhs = rhs - self._full(vc)

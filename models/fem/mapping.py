@@ -10,9 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-
-from models.fem.elements import HEX_CORNERS
-from models.fem.grid import SparseGrid
+from knee.models.fem.elements import HEX_CORNERS
+from knee.models.fem.grid import SparseGrid
 
 
 class TrilinearMapping:

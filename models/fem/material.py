@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-
-from toolkit.errors import KneeInputError
+from knee.foundations.errors import KneeInputError
 
 
 def elasticity_matrix(E: float, nu: float) -> np.ndarray:

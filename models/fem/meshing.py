@@ -14,7 +14,7 @@ def box_hexahedra(n, size, origin=(0.0, 0.0, 0.0)):
     Returns
     -------
     X : ((nx+1)(ny+1)(nz+1), 3) float and cells : (nx ny nz, 8) int (node order of
-    :mod:`models.fem.elements`).
+    :mod:`knee.models.fem.elements`).
     """
     nx, ny, nz = (int(v) for v in n)
     axes = [np.linspace(o, o + s, k + 1) for o, s, k in zip(origin, size, (nx, ny, nz))]

@@ -11,16 +11,25 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-
-from models.fem.bones import tetrahedralize_to_count
-from models.fem.elements import nearest_rotations
-from models.fem.fields import GridElasticity, MappedBoneElasticity, MappedPenaltyContact, MappedSprings
-from models.fem.grid import build_grid
-from models.fem.integrator import ImplicitEuler
-from models.mechanism.solver import Mechanism
-from models.phantom import build_phantom
-from toolkit.conventions import joint_to_pose, transform_points
-from toolkit.geometry import least_varying_pair, rigid_register
+import trimesh
+from knee.foundations.conventions import (
+    joint_to_pose,
+    matrix_to_cardan,
+    transform_points,
+)
+from knee.foundations.geometry import least_varying_pair, rigid_register
+from knee.models.fem.bones import tetrahedralize_to_count
+from knee.models.fem.elements import nearest_rotations
+from knee.models.fem.fields import (
+    GridElasticity,
+    MappedBoneElasticity,
+    MappedPenaltyContact,
+    MappedSprings,
+)
+from knee.models.fem.grid import build_grid
+from knee.models.fem.integrator import ImplicitEuler
+from knee.models.mechanism.solver import Mechanism
+from knee.models.phantom import build_phantom
 
 SOFT_DENSITY = 1.0e-9   # tonne/mm^3 (1000 kg/m^3)
 BONE_DENSITY = 1.9e-9   # tonne/mm^3
@@ -73,10 +82,28 @@ class AssociationModel:
     settings: FemSettings = field(default_factory=FemSettings)
     phantom: object = None
     joint_y: float = 0.0
+    #: grid cells inverted at the last check of the state (:func:`knee.models.fem.methods.check_state`)
+    inverted_cells: int = 0
+    #: elements dropped, and grid nodes held for want of any element, when a prior's initialisation made
+    #: its configuration the reference (:func:`knee.models.fem.methods.initialise_from_prior`)
+    inverted_at_init: int = 0
+    isolated_at_init: int = 0
+    _thigh: tuple | None = field(default=None, repr=False)
 
     @property
     def x(self):
+        """The grid's node positions (N, 3), mm, model (femur) frame."""
         return self.solver.x
+
+    def thigh_samples(self) -> tuple[np.ndarray, np.ndarray]:
+        """Points spread densely over the model's thigh skin (the skin's vertices are ~15 mm apart) and
+        their faces' normals, (P, 3) each; sampled once per model (the skin at extension does not change)."""
+        if self._thigh is None:
+            skin = trimesh.Trimesh(self.skin_vertices, self.skin_faces, process=False)
+            dense, face = trimesh.sample.sample_surface(skin, 30000, seed=0)
+            keep = dense[:, 1] > 60.0
+            self._thigh = (dense[keep], skin.face_normals[face[keep]])
+        return self._thigh
 
 
 def isometric_lateral_pair(mech: Mechanism, femur_vertices, tibia_vertices, T0, angles_deg=range(0, 121, 10)):
@@ -120,7 +147,7 @@ def bone_cell_masks(grid, femur, tibia):
     return out[0] & ~both, out[1] & ~both
 
 
-def node_rotations(grid, soft, femur, tibia, solver):
+def node_rotations(grid, soft, femur, tibia):
     """The rotation of the material around each grid node, for the warped preconditioner.
 
     Nodes that carry bone (the nodes of the cells holding a bone's nodes) turn with the bones: the bones'
@@ -129,7 +156,9 @@ def node_rotations(grid, soft, femur, tibia, solver):
     thousand times stiffer than the tissue, so a wrong rotation at even a few of these nodes spoils the
     preconditioner: measured on the prior's 120 deg case, the four nodes shared by femur and tibia given a
     tissue cell's rotation took a kept factorisation from about 33 to 130 iterations per step. Elsewhere,
-    the average of the rotations of the live grid cells around the node (its nearest rotation)."""
+    the average of the rotations of the live grid cells around the node (its nearest rotation).
+
+    Returns the function ``rotations(x)``: grid positions (N, 3) -> rotations (N, 3, 3)."""
     n = grid.n_nodes
     weights = [np.asarray(b.map.J.sum(axis=0)).ravel() for b in (femur, tibia)]
     bone = (weights[0] + weights[1]) > 0
@@ -140,7 +169,7 @@ def node_rotations(grid, soft, femur, tibia, solver):
     tissue = np.nonzero(~bone)[0]
     inc_t = incidence[tissue]
 
-    def rotations():
+    def rotations(x):
         R = np.empty((n, 3, 3))
         alive = soft.el.alive
         S = (inc_t @ (soft.el.R.reshape(-1, 9) * alive[:, None])).reshape(-1, 3, 3)
@@ -148,7 +177,7 @@ def node_rotations(grid, soft, femur, tibia, solver):
         if none.any():
             S[none] = (inc_t[none] @ soft.el.R.reshape(-1, 9)).reshape(-1, 3, 3)
         R[tissue] = nearest_rotations(S)
-        Rb = [best_fit_rotation(b.el.X, b.bone_positions(solver.x)) for b in (femur, tibia)]
+        Rb = [best_fit_rotation(b.el.X, b.bone_positions(x)) for b in (femur, tibia)]
         wf, wt = weights[0][bone], weights[1][bone]
         Rn = np.where((wt == 0)[:, None, None], Rb[0], Rb[1])  # nodes carrying one bone: its rotation
         both = (wf > 0) & (wt > 0)
@@ -195,8 +224,7 @@ def build_association_model(mech: Mechanism, settings: FemSettings | None = None
     # cell below the top of the femur mesh upwards are fixed
     fixed = grid.X[:, 1] >= grid.axes[1][np.searchsorted(grid.axes[1], Xf[:, 1].max()) - 1]
     solver = ImplicitEuler(grid.X, mass, [soft, femur, tibia, springs, contact], s.dt, s.rayleigh_mass,
-                           s.rayleigh_stiffness, fixed=fixed)
-    solver.node_rotations = node_rotations(grid, soft, femur, tibia, solver)
+                           s.rayleigh_stiffness, fixed=fixed, node_rotations=node_rotations(grid, soft, femur, tibia))
     solver.prepare()
     return AssociationModel(grid=grid, femur=femur, tibia=tibia, springs=springs, contact=contact, soft=soft,
                             solver=solver, skin_vertices=np.asarray(skin.vertices), skin_faces=np.asarray(skin.faces),
@@ -214,8 +242,6 @@ def knee_angles(model: "AssociationModel", x=None):
     Cardan flexion of the tibia's best-fit rotation relative to the femur's; the femur-tibia angle is
     the angle between the femur's proximal axis and the tibia's distal axis (180 at extension), the
     quantity the paper's bone-force phase drives below 100 degrees."""
-    from toolkit.conventions import matrix_to_cardan
-
     x = model.x if x is None else x
     Rf = best_fit_rotation(model.femur.el.X, model.femur.bone_positions(x))
     Rt = best_fit_rotation(model.tibia.el.X, model.tibia.bone_positions(x))

@@ -10,7 +10,7 @@ before); it keeps the entries it had, so pairs that come and go do not change it
 grown to ``slack`` times its size when last built from scratch. A field can reserve entries up front
 (``pattern_reserve()``: the contact's possible pairs), which the pattern always holds. The held DOFs'
 rows and columns are left out of the returned pattern. Its ``version`` changes with that pattern, which
-tells the factorisation when the symbolic analysis must be redone (:class:`models.fem.factor.Refactorizer`).
+tells the factorisation when the symbolic analysis must be redone (:class:`knee.models.fem.factor.Refactorizer`).
 """
 
 from __future__ import annotations

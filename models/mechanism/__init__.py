@@ -7,7 +7,7 @@
 - :mod:`.reference` an independent NumPy/SciPy implementation used as a check and a baseline.
 """
 
-from models.mechanism.params import MechanismParams, bundled_models, load_model
-from models.mechanism.solver import Mechanism, Sensitivity, SweepResult
+from knee.models.mechanism.params import MechanismParams, bundled_models, load_model
+from knee.models.mechanism.solver import Mechanism, Sensitivity, SweepResult
 
 __all__ = ["Mechanism", "MechanismParams", "Sensitivity", "SweepResult", "bundled_models", "load_model"]

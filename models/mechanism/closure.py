@@ -21,10 +21,24 @@ raw components are well defined.
 from __future__ import annotations
 
 import casadi as ca
-
-from models.mechanism.params import LINK_SIZE, N_LINKS, N_PARAMS
-
-PF0 = N_LINKS * LINK_SIZE
+from knee.models.mechanism.params import (
+    LINK_FEMUR,
+    LINK_LENGTH,
+    LINK_NORMAL,
+    LINK_TIBIA,
+    N_PARAMS,
+    PF_AXIS_FEMUR,
+    PF_AXIS_PATELLA,
+    PF_LAMBDA0,
+    PF_LAMBDA1,
+    PF_POINT_FEMUR,
+    PF_POINT_PATELLA,
+    PF_REFERENCE_FLEXION,
+    PF_TENDON_LENGTH,
+    PF_TENDON_PATELLA,
+    PF_TENDON_TIBIA,
+    link_entries,
+)
 
 
 def _rx(a):
@@ -61,8 +75,8 @@ def tf_residual(x, alpha, p, kinds):
     R, P = tf_pose(x, alpha)
     out = []
     for i, kind in enumerate(kinds):
-        o = i * LINK_SIZE
-        cf, ct, n, length = p[o:o + 3], p[o + 3:o + 6], p[o + 6:o + 9], p[o + 9]
+        cf, ct = p[link_entries(i, LINK_FEMUR)], p[link_entries(i, LINK_TIBIA)]
+        n, length = p[link_entries(i, LINK_NORMAL)], p[link_entries(i, LINK_LENGTH)]
         if kind == "distance":
             out.append(ca.norm_2(cf - ca.mtimes(R, ct) - P) - length)
         elif kind == "sphere-plane":
@@ -74,10 +88,9 @@ def tf_residual(x, alpha, p, kinds):
 
 def pf_pose(psi, theta, p):
     """``(R_fp, P_fp)`` of the patella on its helical axis (eqs. 2-3)."""
-    o = PF0
-    nf, qf = _unit(p[o:o + 3]), p[o + 3:o + 6]
-    npat, qp = _unit(p[o + 6:o + 9]), p[o + 9:o + 12]
-    lam0, lam1 = p[o + 19], p[o + 20]
+    nf, qf = _unit(p[PF_AXIS_FEMUR]), p[PF_POINT_FEMUR]
+    npat, qp = _unit(p[PF_AXIS_PATELLA]), p[PF_POINT_PATELLA]
+    lam0, lam1 = p[PF_LAMBDA0], p[PF_LAMBDA1]
     v = ca.cross(npat, nf)
     c = ca.dot(npat, nf)
     K = _skew(v)
@@ -91,15 +104,14 @@ def pf_pose(psi, theta, p):
 
 def pf_residual(psi, theta, x, alpha, p):
     """The patellar-tendon residual (mm, eq. 4)."""
-    o = PF0
     Rt, Pt = tf_pose(x, alpha)
     Rp, Pp = pf_pose(psi, theta, p)
-    ct6, cp6, l6 = p[o + 12:o + 15], p[o + 15:o + 18], p[o + 18]
+    ct6, cp6, l6 = p[PF_TENDON_TIBIA], p[PF_TENDON_PATELLA], p[PF_TENDON_LENGTH]
     return ca.norm_2(ca.mtimes(Rp, cp6) + Pp - ca.mtimes(Rt, ct6) - Pt) - l6
 
 
 def cardan(R):
-    """``(alpha, beta, gamma)`` of ``R = Rz(-alpha) Rx(beta) Ry(gamma)`` (toolkit.conventions)."""
+    """``(alpha, beta, gamma)`` of ``R = Rz(-alpha) Rx(beta) Ry(gamma)`` (knee.foundations.conventions)."""
     return ca.vertcat(ca.atan2(R[0, 1], R[1, 1]), ca.asin(R[2, 1]), ca.atan2(-R[2, 0], R[2, 2]))
 
 
@@ -122,10 +134,15 @@ NEWTON_OPTS = {"abstol": 1e-12, "abstolStep": 1e-12, "max_iter": 40, "error_on_f
 #: Length of the chunk of angles one call of the compiled sweep solves.
 CHUNK = 64
 #: Size of the step function's diagnostic output: TF residuals (5), PF residual (1),
-#: TF Jacobian (25, column-major), PF joint coordinates (6).
+#: TF Jacobian (25, column-major), PF joint coordinates (6); named below.
 N_DIAG = 37
-#: State carried by the continuation: (x[5], psi, alpha) now and at the previous step.
+DIAG_TF_RESIDUAL, DIAG_PF_RESIDUAL = slice(0, 5), 5
+DIAG_RESIDUALS = slice(0, 6)
+DIAG_JACOBIAN = slice(6, 31)
+DIAG_PF = slice(31, 37)
+#: State carried by the continuation: (x[5], psi, alpha) now and at the previous step; named below (now).
 N_STATE = 14
+STATE_X, STATE_PSI, STATE_ALPHA = slice(0, 5), 5, 6
 
 
 def build_step(kinds, has_pf):
@@ -214,7 +231,7 @@ def build_sensitivity(kinds, has_pf):
     x, a, p, psi, psi_ref = symbols()
     if has_pf:
         xr = ca.SX.sym("x_ref", 5)
-        a_ref = p[PF0 + 21]
+        a_ref = p[PF_REFERENCE_FLEXION]
         z = ca.vertcat(x, psi, xr, psi_ref)
         F = ca.vertcat(tf_residual(x, a, p, kinds), pf_residual(psi, psi - psi_ref, x, a, p),
                        tf_residual(xr, a_ref, p, kinds), pf_residual(psi_ref, 0, xr, a_ref, p))

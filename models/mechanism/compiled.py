@@ -1,6 +1,6 @@
 """Code generation, compilation and loading of the mechanism's CasADi functions.
 
-The functions of :mod:`models.mechanism.closure` (one continuation step, a chunked sweep, a TF Newton
+The functions of :mod:`knee.models.mechanism.closure` (one continuation step, a chunked sweep, a TF Newton
 solve) depend only on the *structure* of the mechanism: the kinds of its five links and whether it has
 a patella. For each structure the C code is generated once, compiled with the system C compiler
 (``$CC`` or ``cc``/``gcc``) into a shared library, and cached on disk under
@@ -11,6 +11,10 @@ per-call overhead to a microsecond or two.
 When no C compiler is found, or compiling fails, the same functions run through CasADi's own virtual
 machine (:class:`CasadiBackend`), slower but identical in results. ``KNEE_NO_COMPILE=1`` forces that
 fallback.
+
+Threads: the generated functions and the loaded library are shared by the whole process (built once
+under a lock), but the buffers they are called with belong to one thread: :func:`backend` gives each
+thread its own :class:`Backend`, so two mechanisms of one structure can be solved from two threads.
 """
 
 from __future__ import annotations
@@ -22,12 +26,12 @@ import os
 import shutil
 import subprocess
 import tempfile
+import threading
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
-
-from models.mechanism import closure
+from knee.models.mechanism import closure
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +93,8 @@ class _CFunction:
         self._res = (ctypes.c_void_p * len(resv))(*resv)
         self._call_args = (ctypes.addressof(self._arg), ctypes.addressof(self._res),
                            self._iw.ctypes.data, self._w.ctypes.data, self._mem)
+        #: the object whose constant inputs (parameters) the buffers hold now (see ``Mechanism``)
+        self.owner = None
 
     def call(self) -> None:
         """Evaluate with the current contents of :attr:`inputs` into :attr:`outputs`."""
@@ -105,6 +111,7 @@ class _CasadiFunction:
         self._shapes = [f.size_in(i) for i in range(f.n_in())]
         self.inputs = [np.zeros(f.numel_in(i)) for i in range(f.n_in())]
         self.outputs = [np.zeros(f.numel_out(i)) for i in range(f.n_out())]
+        self.owner = None
 
     def call(self) -> None:
         res = self._f(*[a.reshape(s, order="F") for a, s in zip(self.inputs, self._shapes)])
@@ -114,8 +121,24 @@ class _CasadiFunction:
             o[...] = np.asarray(ca.DM(r)).ravel(order="F")
 
 
+class _Shared:
+    """What the threads share for one structure: the CasADi functions and the compiled library (or None)."""
+
+    def __init__(self, kinds, has_pf, compile: bool | None):
+        self.functions = build_functions(kinds, has_pf)
+        self.library = None
+        want = compile if compile is not None else os.environ.get("KNEE_NO_COMPILE", "") in ("", "0")
+        if want:
+            try:
+                self.library = _compiled_library(self.functions)
+            except (OSError, RuntimeError, subprocess.SubprocessError) as e:
+                log.warning("compiling the mechanism failed (%s); using CasADi's virtual machine", e)
+        self.lib = ctypes.CDLL(str(self.library)) if self.library is not None else None
+
+
 class Backend:
-    """The mechanism's numeric functions for one structure: ``step``, ``sweep``, ``tf_newton``.
+    """The mechanism's numeric functions for one structure, with one thread's buffers: ``step``,
+    ``sweep``, ``tf_newton``, ``tf_newton_batch``.
 
     Attributes
     ----------
@@ -125,40 +148,41 @@ class Backend:
         The cached shared library in use.
     """
 
-    def __init__(self, kinds, has_pf, compile: bool | None = None):
-        self.kinds = tuple(kinds)
-        self.has_pf = bool(has_pf)
-        funcs = build_functions(self.kinds, self.has_pf)
-        self.library = None
-        self.compiled = False
-        want = compile if compile is not None else os.environ.get("KNEE_NO_COMPILE", "") in ("", "0")
-        if want:
-            try:
-                self.library = _compiled_library(funcs)
-            except (OSError, RuntimeError, subprocess.SubprocessError) as e:
-                log.warning("compiling the mechanism failed (%s); using CasADi's virtual machine", e)
-        if self.library is not None:
-            lib = ctypes.CDLL(str(self.library))
-            self._lib = lib
-            wrap = {n: _CFunction(lib, n, f) for n, f in funcs.items()}
-            self.compiled = True
+    def __init__(self, shared: _Shared):
+        self.library = shared.library
+        self.compiled = shared.lib is not None
+        if self.compiled:
+            wrap = {n: _CFunction(shared.lib, n, f) for n, f in shared.functions.items()}
         else:
-            wrap = {n: _CasadiFunction(f) for n, f in funcs.items()}
+            wrap = {n: _CasadiFunction(f) for n, f in shared.functions.items()}
         self.step = wrap["knee_step"]
         self.sweep = wrap["knee_sweep"]
         self.tf_newton = wrap["knee_tf_newton"]
         self.tf_newton_batch = wrap["knee_tf_newton_batch"]
 
 
-_BACKENDS: dict = {}
+_SHARED: dict = {}
+_SHARED_LOCK = threading.Lock()
+_THREAD = threading.local()
 
 
 def backend(kinds, has_pf, compile: bool | None = None) -> Backend:
-    """A (memoised) :class:`Backend` for a structure."""
+    """The calling thread's :class:`Backend` for a structure (memoised per thread; the functions and the
+    library behind it are built once per process)."""
     key = (tuple(kinds), bool(has_pf), compile, os.environ.get("KNEE_NO_COMPILE", ""))
-    if key not in _BACKENDS:
-        _BACKENDS[key] = Backend(kinds, has_pf, compile)
-    return _BACKENDS[key]
+    mine = _THREAD.__dict__.setdefault("backends", {})
+    if key not in mine:
+        with _SHARED_LOCK:
+            if key not in _SHARED:
+                _SHARED[key] = _Shared(key[0], key[1], compile)
+        mine[key] = Backend(_SHARED[key])
+    return mine[key]
+
+
+def new_backend(kinds, has_pf, compile: bool | None = None) -> Backend:
+    """A :class:`Backend` of its own (nothing memoised): the functions generated and, when compiling, the
+    library compiled or taken from the on-disk cache now."""
+    return Backend(_Shared(tuple(kinds), bool(has_pf), compile))
 
 
 def _compiled_library(funcs: dict[str, ca.Function]) -> Path | None:
@@ -170,12 +194,7 @@ def _compiled_library(funcs: dict[str, ca.Function]) -> Path | None:
         cg = ca.CodeGenerator("knee_mech.c", {"with_header": False})
         for f in funcs.values():
             cg.add(f)
-        cwd = os.getcwd()
-        try:
-            os.chdir(tmp)
-            cg.generate()
-        finally:
-            os.chdir(cwd)
+        cg.generate(str(tmp) + os.sep)  # into the temporary folder (no change of working directory)
         src = Path(tmp) / "knee_mech.c"
         code = src.read_bytes()
         key = hashlib.sha256(code + " ".join(CFLAGS).encode() + GENERATOR_VERSION.encode()

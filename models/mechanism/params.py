@@ -30,8 +30,7 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
-
-from toolkit.errors import ModelFileError, UnknownModelError
+from knee.foundations.errors import ModelFileError, UnknownModelError
 
 FORMAT_NAME = "knee-mechanism"
 FORMAT_VERSION = 1
@@ -44,6 +43,25 @@ LINK_SIZE = 10
 PF_SIZE = 22
 N_LINKS = 5
 N_PARAMS = N_LINKS * LINK_SIZE + PF_SIZE
+
+# The flat parameter vector's layout (:meth:`MechanismParams.to_vector`), named. Within link i's block,
+# which starts at ``i * LINK_SIZE``: the femoral point, the tibial point, the plane normal and the length.
+LINK_FEMUR, LINK_TIBIA, LINK_NORMAL, LINK_LENGTH = slice(0, 3), slice(3, 6), slice(6, 9), 9
+#: Where the patello-femoral group starts, and its entries (absolute indices into the vector).
+PF0 = N_LINKS * LINK_SIZE
+PF_AXIS_FEMUR = slice(PF0, PF0 + 3)
+PF_POINT_FEMUR = slice(PF0 + 3, PF0 + 6)
+PF_AXIS_PATELLA = slice(PF0 + 6, PF0 + 9)
+PF_POINT_PATELLA = slice(PF0 + 9, PF0 + 12)
+PF_TENDON_TIBIA = slice(PF0 + 12, PF0 + 15)
+PF_TENDON_PATELLA = slice(PF0 + 15, PF0 + 18)
+PF_TENDON_LENGTH, PF_LAMBDA0, PF_LAMBDA1, PF_REFERENCE_FLEXION = PF0 + 18, PF0 + 19, PF0 + 20, PF0 + 21
+
+
+def link_entries(i: int, part) -> slice | int:
+    """Absolute index (or slice) of entry ``part`` (``LINK_FEMUR``, ...) of link ``i`` in the vector."""
+    o = i * LINK_SIZE
+    return slice(o + part.start, o + part.stop) if isinstance(part, slice) else o + part
 
 
 @dataclass(frozen=True)
@@ -159,10 +177,12 @@ class MechanismParams:
             v[o + 9] = lk.length
         if self.pf is not None:
             f = self.pf
-            o = N_LINKS * LINK_SIZE
-            v[o:o + 18] = np.concatenate([f.axis_femur, f.point_femur, f.axis_patella, f.point_patella,
-                                          f.tendon_tibia, f.tendon_patella])
-            v[o + 18:o + 22] = [f.tendon_length, f.lambda0, f.lambda1, f.reference_flexion]
+            for sl, val in ((PF_AXIS_FEMUR, f.axis_femur), (PF_POINT_FEMUR, f.point_femur),
+                            (PF_AXIS_PATELLA, f.axis_patella), (PF_POINT_PATELLA, f.point_patella),
+                            (PF_TENDON_TIBIA, f.tendon_tibia), (PF_TENDON_PATELLA, f.tendon_patella),
+                            (PF_TENDON_LENGTH, f.tendon_length), (PF_LAMBDA0, f.lambda0), (PF_LAMBDA1, f.lambda1),
+                            (PF_REFERENCE_FLEXION, f.reference_flexion)):
+                v[sl] = val
         return v
 
     def with_vector(self, v) -> "MechanismParams":
@@ -172,16 +192,16 @@ class MechanismParams:
             raise ValueError(f"parameter vector must have shape ({N_PARAMS},), got {v.shape}")
         links = []
         for i, lk in enumerate(self.links):
-            o = i * LINK_SIZE
-            links.append(replace(lk, femur=v[o:o + 3].copy(), tibia=v[o + 3:o + 6].copy(),
-                                 normal=None if lk.normal is None else v[o + 6:o + 9].copy(),
-                                 length=float(v[o + 9])))
+            links.append(replace(lk, femur=v[link_entries(i, LINK_FEMUR)].copy(),
+                                 tibia=v[link_entries(i, LINK_TIBIA)].copy(),
+                                 normal=None if lk.normal is None else v[link_entries(i, LINK_NORMAL)].copy(),
+                                 length=float(v[link_entries(i, LINK_LENGTH)])))
         pf = self.pf
         if pf is not None:
-            o = N_LINKS * LINK_SIZE
-            s = [v[o + 3 * k:o + 3 * k + 3].copy() for k in range(6)]
-            pf = PFGroup(*s, tendon_length=float(v[o + 18]), lambda0=float(v[o + 19]),
-                         lambda1=float(v[o + 20]), reference_flexion=float(v[o + 21]))
+            pf = PFGroup(v[PF_AXIS_FEMUR].copy(), v[PF_POINT_FEMUR].copy(), v[PF_AXIS_PATELLA].copy(),
+                         v[PF_POINT_PATELLA].copy(), v[PF_TENDON_TIBIA].copy(), v[PF_TENDON_PATELLA].copy(),
+                         tendon_length=float(v[PF_TENDON_LENGTH]), lambda0=float(v[PF_LAMBDA0]),
+                         lambda1=float(v[PF_LAMBDA1]), reference_flexion=float(v[PF_REFERENCE_FLEXION]))
         return replace(self, links=tuple(links), pf=pf)
 
     def to_toml(self) -> str:
@@ -392,7 +412,7 @@ def load_toml(path) -> MechanismParams:
 def bundled_models() -> dict[str, str]:
     """Bundled parameter sets: name -> one-line description."""
     out = {}
-    for f in sorted(resources.files("models.mechanism").joinpath("data").iterdir()):
+    for f in sorted(resources.files("knee.models.mechanism").joinpath("data").iterdir()):
         if f.name.endswith(".toml"):
             data = tomllib.loads(f.read_text(encoding="utf-8"))
             out[data.get("name", f.name[:-5])] = str(data.get("description", "")).strip()
@@ -410,7 +430,7 @@ def load_model(name_or_path) -> MechanismParams:
         The file is malformed.
     """
     s = str(name_or_path)
-    res = resources.files("models.mechanism").joinpath("data").joinpath(f"{s}.toml")
+    res = resources.files("knee.models.mechanism").joinpath("data").joinpath(f"{s}.toml")
     if "/" not in s and not s.endswith(".toml") and res.is_file():
         data = tomllib.loads(res.read_text(encoding="utf-8"))
         return params_from_dict(data, origin=f"{s}.toml (bundled)")

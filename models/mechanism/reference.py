@@ -1,7 +1,7 @@
 """An independent NumPy/SciPy implementation of the closure equations (seed 002, eqs. 1-4).
 
 It shares no code with the CasADi path (:mod:`.closure`): rotations come from
-:mod:`toolkit.conventions`, the PF pose from Rodrigues' formula written out again, and the solves use
+:mod:`knee.foundations.conventions`, the PF pose from Rodrigues' formula written out again, and the solves use
 ``scipy.optimize.least_squares`` and ``brentq``. Tests check the CasADi solver against it, and the
 benchmark uses :func:`solve_sweep_least_squares` as its baseline.
 """
@@ -9,10 +9,9 @@ benchmark uses :func:`solve_sweep_least_squares` as its baseline.
 from __future__ import annotations
 
 import numpy as np
+from knee.foundations.conventions import cardan_to_matrix, matrix_to_cardan
+from knee.models.mechanism.params import MechanismParams
 from scipy.optimize import least_squares
-
-from models.mechanism.params import MechanismParams
-from toolkit.conventions import cardan_to_matrix, matrix_to_cardan
 
 
 def _axis_angle(n, a):

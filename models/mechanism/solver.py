@@ -1,6 +1,6 @@
 """Solving the knee mechanism: single angles, sweeps by continuation, assembly modes, derivatives.
 
-A :class:`Mechanism` is built from :class:`~models.mechanism.params.MechanismParams`. On construction it
+A :class:`Mechanism` is built from :class:`~knee.models.mechanism.params.MechanismParams`. On construction it
 chooses an assembly branch (the parameter file's ``[initial]`` pose, or a multi-start search) and
 tabulates that branch at 1-degree spacing over the whole flexion range where it assembles, refining
 both ends of the range to 1e-6 degrees. Every later solve starts from the nearest tabulated state, so a
@@ -10,7 +10,7 @@ Angles are radians throughout (degrees only in the CLI and CSV); lengths mm.
 
 Example
 -------
->>> from models.mechanism import Mechanism
+>>> from knee.models.mechanism import Mechanism
 >>> m = Mechanism.from_name("volunteer")
 >>> res = m.sweep(np.radians(np.arange(0, 121)))
 >>> res.tf.shape, float(res.residual.max()) < 1e-9
@@ -24,13 +24,16 @@ from dataclasses import dataclass, field
 
 import casadi as ca
 import numpy as np
+from knee.foundations.conventions import joint_to_pose
+from knee.foundations.errors import AssemblyError, KneeInputError
+from knee.models.mechanism import closure, compiled
+from knee.models.mechanism.params import (
+    N_PARAMS,
+    PF_REFERENCE_FLEXION,
+    MechanismParams,
+    load_model,
+)
 
-from models.mechanism import closure, compiled
-from models.mechanism.params import N_PARAMS, MechanismParams, load_model
-from toolkit.conventions import joint_to_pose
-from toolkit.errors import AssemblyError, KneeInputError
-
-PF0 = closure.PF0
 #: Closure residual (mm) above which a solve counts as not converged.
 RESIDUAL_TOL = 1e-9
 #: Jacobian condition number above which an angle is reported as near-singular.
@@ -291,7 +294,7 @@ class Mechanism:
     def __init__(self, params: MechanismParams, compile: bool | None = None):
         self.params = params
         self.p = params.to_vector()
-        self.backend = compiled.backend(params.kinds, params.has_pf, compile)
+        self._compile = compile
         self.has_pf = params.has_pf
         self.psi_ref = 0.0
         self._build_branch()
@@ -302,7 +305,14 @@ class Mechanism:
         return cls(load_model(name_or_path), compile)
 
     @property
+    def backend(self) -> compiled.Backend:
+        """The calling thread's numeric functions for this mechanism's structure (each thread has its own
+        buffers, so one mechanism, or two of one structure, can be used from several threads)."""
+        return compiled.backend(self.params.kinds, self.has_pf, self._compile)
+
+    @property
     def compiled(self) -> bool:
+        """Whether the numeric functions run compiled (else in CasADi's virtual machine)."""
         return self.backend.compiled
 
     # ------------------------------------------------------------------------------------------
@@ -310,7 +320,7 @@ class Mechanism:
 
     def _claim(self, fn):
         """Write this mechanism's parameters into a shared backend function's inputs, once."""
-        if getattr(fn, "owner", None) is not self:
+        if fn.owner is not self:
             fn.inputs[2][:] = self.p
             fn.owner = self
         fn.inputs[3][0] = self.psi_ref
@@ -324,12 +334,12 @@ class Mechanism:
         return st.outputs[0].copy(), st.outputs[1].copy()
 
     def _ok(self, diag, use_pf=True) -> bool:
-        r = np.abs(diag[:6] if (use_pf and self.has_pf) else diag[:5])
+        r = np.abs(diag[closure.DIAG_RESIDUALS] if (use_pf and self.has_pf) else diag[closure.DIAG_TF_RESIDUAL])
         return bool(np.all(r < RESIDUAL_TOL))
 
     @staticmethod
     def _rate(s0, s1, da):
-        d = np.abs(s1[:5] - s0[:5])
+        d = np.abs(s1[closure.STATE_X] - s0[closure.STATE_X])
         d[:2] = np.degrees(d[:2])
         return float(d.max() / max(abs(math.degrees(da)), 1e-12))
 
@@ -339,8 +349,8 @@ class Mechanism:
         """
         out = [state]
         prev_rate = None
-        while (limit - out[-1][6]) * direction > 1e-12:
-            a = out[-1][6]
+        while (limit - out[-1][closure.STATE_ALPHA]) * direction > 1e-12:
+            a = out[-1][closure.STATE_ALPHA]
             target = a + direction * min(_TABLE_STEP, abs(limit - a))
             s, d = self._step(out[-1], target)
             rate = self._rate(out[-1], s, target - a)
@@ -358,10 +368,10 @@ class Mechanism:
         not). Near a fold the two branches merge, so a step is accepted when it closes and moves the
         unknowns by less than ``JUMP_RATE`` mm (or degrees)."""
         lo, hi, visited = base, bad_alpha, []
-        while abs(hi - lo[6]) > math.radians(1e-6):
-            mid = 0.5 * (lo[6] + hi)
+        while abs(hi - lo[closure.STATE_ALPHA]) > math.radians(1e-6):
+            mid = 0.5 * (lo[closure.STATE_ALPHA] + hi)
             s, d = self._step(lo, mid)
-            step = np.abs(s[:5] - lo[:5])
+            step = np.abs(s[closure.STATE_X] - lo[closure.STATE_X])
             step[:2] = np.degrees(step[:2])
             if self._ok(d, use_pf) and step.max() < JUMP_RATE:
                 lo = s
@@ -401,13 +411,13 @@ class Mechanism:
         use_pf = False
         if self.has_pf:
             a_ref = self.params.pf.reference_flexion
-            path = self._walk(s0, 1.0 if a_ref >= s0[6] else -1.0, a_ref, use_pf=False)
-            if abs(path[-1][6] - a_ref) > 1e-9:
+            path = self._walk(s0, 1.0 if a_ref >= s0[closure.STATE_ALPHA] else -1.0, a_ref, use_pf=False)
+            if abs(path[-1][closure.STATE_ALPHA] - a_ref) > 1e-9:
                 raise AssemblyError(
                     f"{self.params.name}: the TF mechanism stops assembling at "
-                    f"{math.degrees(path[-1][6]):.2f} deg, before the PF reference flexion "
+                    f"{math.degrees(path[-1][closure.STATE_ALPHA]):.2f} deg, before the PF reference flexion "
                     f"{math.degrees(a_ref):.1f} deg")
-            self.x_ref = path[-1][:5].copy()
+            self.x_ref = path[-1][closure.STATE_X].copy()
             self.psi_ref = self._reference_psi(self.x_ref, a_ref)
             s0 = _fresh(self.x_ref, self.psi_ref, a_ref)
             use_pf = True
@@ -417,7 +427,7 @@ class Mechanism:
         down = self._walk(s0, -1.0, -_SEARCH_LIMIT, use_pf)
         table = np.array(down[::-1] + up[1:])
         self._table = table
-        self._table_alpha = table[:, 6]
+        self._table_alpha = table[:, closure.STATE_ALPHA]
         self.assembly_range = (float(table[0, 6]), float(table[-1, 6]))
 
     def _reference_psi(self, x_ref, a_ref) -> float:
@@ -487,7 +497,7 @@ class Mechanism:
             raise AssemblyError(f"no closure at {math.degrees(a):.3f} deg (residual {res:.3g} mm)")
         tf = np.empty(6)
         tf[0] = a
-        tf[1:] = s[:5]
+        tf[1:] = s[closure.STATE_X]
         pf = d[31:37].copy() if self.has_pf else np.full(6, np.nan)
         return tf, pf, res
 
@@ -546,9 +556,9 @@ class Mechanism:
         self._claim(sw)
         states, diags = _run_chunks(sw, start, al)
         # checks, vectorised: convergence, then jumps between branches
-        res = np.abs(diags[:, :6] if self.has_pf else diags[:, :5]).max(axis=1)
+        res = np.abs(diags[:, closure.DIAG_RESIDUALS] if self.has_pf else diags[:, closure.DIAG_TF_RESIDUAL]).max(axis=1)
         bad = ~(res < RESIDUAL_TOL)
-        jump = detect_jumps(start[:5], start[6], states[:, :5], al)
+        jump = detect_jumps(start[closure.STATE_X], start[closure.STATE_ALPHA], states[:, closure.STATE_X], al)
         stop = np.nonzero(bad | jump)[0]
         if stop.size == 0:
             return self._result(al, states, diags, "ok", "", None, res)
@@ -560,7 +570,7 @@ class Mechanism:
         # where does the branch stop assembling? refine between the last good angle and al[k]
         base = states[k - 1] if k > 0 else start
         ends = self._bisect_end(base, al[k], self.has_pf)
-        limit = float(ends[-1][6]) if ends else float(base[6])
+        limit = float(ends[-1][closure.STATE_ALPHA]) if ends else float(base[closure.STATE_ALPHA])
         last = f"{math.degrees(al[k - 1]):.2f} deg" if k > 0 else "none"
         if status == "jump":
             msg = (f"jumped to another assembly branch at {math.degrees(al[k]):.2f} deg "
@@ -572,13 +582,13 @@ class Mechanism:
 
     def _result(self, al, states, diags, status, msg, limit, res=None) -> SweepResult:
         n = states.shape[0]
-        tf = np.column_stack([states[:, 6], states[:, :5]]) if n else np.zeros((0, 6))
-        pf = diags[:, 31:37].copy() if self.has_pf else np.full((n, 6), np.nan)
+        tf = np.column_stack([states[:, closure.STATE_ALPHA], states[:, closure.STATE_X]]) if n else np.zeros((0, 6))
+        pf = diags[:, closure.DIAG_PF].copy() if self.has_pf else np.full((n, 6), np.nan)
         if res is None:
-            res = np.abs(diags[:, :6] if self.has_pf else diags[:, :5]).max(axis=1) if n else np.zeros(0)
-        J = diags[:, 6:31].reshape(n, 5, 5).transpose(0, 2, 1)  # column-major -> rows
+            res = np.abs(diags[:, closure.DIAG_RESIDUALS] if self.has_pf else diags[:, closure.DIAG_TF_RESIDUAL]).max(axis=1) if n else np.zeros(0)
+        J = diags[:, closure.DIAG_JACOBIAN].reshape(n, 5, 5).transpose(0, 2, 1)  # column-major -> rows
         return SweepResult(requested=al, flexion=tf[:, 0].copy(), tf=tf, pf=pf, residual=res,
-                           jacobian=J, psi=states[:, 5].copy(), status=status, message=msg,
+                           jacobian=J, psi=states[:, closure.STATE_PSI].copy(), status=status, message=msg,
                            limit=limit, _states=states)
 
     def assembly_modes(self, flexion: float, n_starts: int = 2000, seed: int = 0, _all=False):
@@ -652,9 +662,9 @@ class Mechanism:
             raise AssemblyError(sw.message)
         if self.has_pf:
             n = al.size
-            Z = np.column_stack([sw._states[:, :6], np.tile(np.r_[self.x_ref, self.psi_ref], (n, 1))])
+            Z = np.column_stack([sw._states[:, : closure.STATE_PSI + 1], np.tile(np.r_[self.x_ref, self.psi_ref], (n, 1))])
         else:
-            Z = sw._states[:, :5]
+            Z = sw._states[:, closure.STATE_X]
         return _sensitivities(self.params.kinds, self.has_pf, Z, al, self.p)
 
 
@@ -683,11 +693,11 @@ def quick_tf_sweep(params_vector, kinds, x_start, alphas, compile: bool | None =
     sw.inputs[3][0] = 0.0
     n = al.size
     states, diags = _run_chunks(sw, _fresh(x0, 0.0, al[0]), al)
-    res = np.abs(diags[:, :5]).max(axis=1)
-    jump = detect_jumps(x0, al[0], states[:, :5], al)
+    res = np.abs(diags[:, closure.DIAG_TF_RESIDUAL]).max(axis=1)
+    jump = detect_jumps(x0, al[0], states[:, closure.STATE_X], al)
     ok = bool(np.all(res < RESIDUAL_TOL) and not jump.any())
-    tf = np.column_stack([states[:, 6], states[:, :5]])
-    cond = condition_numbers(diags[:, 6:31].reshape(n, 5, 5).transpose(0, 2, 1)) if ok else np.full(n, np.inf)
+    tf = np.column_stack([states[:, closure.STATE_ALPHA], states[:, closure.STATE_X]])
+    cond = condition_numbers(diags[:, closure.DIAG_JACOBIAN].reshape(n, 5, 5).transpose(0, 2, 1)) if ok else np.full(n, np.inf)
     return tf, res, ok, cond
 
 
@@ -713,7 +723,7 @@ def quick_pf_sweep(params_vector, kinds, x_ref_guess, psi_ref_guess, alphas, com
     n = al.size
     fail = {"tf": np.full((n, 6), np.nan), "pf": np.full((n, 6), np.nan), "ok": False, "Z": None,
             "x_ref": None, "psi_ref": None}
-    a_ref = float(p[closure.PF0 + 21])
+    a_ref = float(p[PF_REFERENCE_FLEXION])
     b = compiled.backend(tuple(kinds), True, compile)
     f = b.tf_newton
     f.owner = None
@@ -746,12 +756,12 @@ def quick_pf_sweep(params_vector, kinds, x_ref_guess, psi_ref_guess, alphas, com
     sw.inputs[3][0] = psi
     states, diags = _run_chunks(sw, _fresh(x_ref, psi, a_ref), path)
     states, diags = states[lead.size:], diags[lead.size:]
-    res = np.abs(diags[:, :6]).max(axis=1)
-    x = states[:, :5]
+    res = np.abs(diags[:, closure.DIAG_RESIDUALS]).max(axis=1)
+    x = states[:, closure.STATE_X]
     jump = detect_jumps(x[0], al[0], x, al)
-    ok = bool(np.all(res < RESIDUAL_TOL) and not jump.any() and np.all(np.isfinite(diags[:, 31:37])))
+    ok = bool(np.all(res < RESIDUAL_TOL) and not jump.any() and np.all(np.isfinite(diags[:, closure.DIAG_PF])))
     Z = np.column_stack([states[:, :6], np.tile(np.r_[x_ref, psi], (n, 1))])
-    return {"tf": np.column_stack([al, x]), "pf": diags[:, 31:37].copy(), "ok": ok, "Z": Z, "x_ref": x_ref,
+    return {"tf": np.column_stack([al, x]), "pf": diags[:, closure.DIAG_PF].copy(), "ok": ok, "Z": Z, "x_ref": x_ref,
             "psi_ref": psi}
 
 

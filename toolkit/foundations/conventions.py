@@ -34,15 +34,10 @@ True
 from __future__ import annotations
 
 import numpy as np
-
-from toolkit.errors import KneeInputError
+from knee.foundations.errors import KneeInputError
 
 #: Names of the six joint coordinates, in storage order.
 JOINT_COORDINATES = ("flexion", "adduction", "internal_rotation", "anterior", "proximal", "lateral")
-
-#: Mirror matrix taking a left knee to a right knee (and back): z flipped.
-MIRROR = np.diag([1.0, 1.0, -1.0])
-
 
 def rot_x(a):
     """Rotation matrices about x. ``a`` : scalar or (n,) radians -> (3, 3) or (n, 3, 3)."""
@@ -158,7 +153,7 @@ def joint_coordinates(T, side="right"):
 
 def to_se3(T):
     """A (4, 4) pose as a pinocchio ``SE3`` (rotation and translation in mm)."""
-    import pinocchio as pin
+    import pinocchio as pin  # deferred: 0.3 s to import, needed here only, by few callers
 
     T = np.asarray(T, dtype=float)
     return pin.SE3(T[:3, :3].copy(), T[:3, 3].copy())

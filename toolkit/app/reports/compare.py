@@ -10,13 +10,20 @@ Toggle a method's entity in the viewer's blueprint tree to show or hide it.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import statistics
+from dataclasses import dataclass
 
-import numpy as np
-import rerun as rr
-import rerun.blueprint as rrb
+import matplotlib
 
-from toolkit import recording as R
+matplotlib.use("Agg")  # files only, no display
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import rerun as rr  # noqa: E402
+import rerun.blueprint as rrb  # noqa: E402
+from knee.app.experiments.cases import CompareRow, FloorRow, MethodResult  # noqa: E402
+from knee.foundations import recording as R  # noqa: E402
+from knee.foundations.conventions import joint_to_pose  # noqa: E402
 
 METHOD_LABELS = {"paper": "(i) paper: bone forces + surface forces",
                  "init": "(ii) prior as initialisation",
@@ -27,52 +34,66 @@ METHOD_COLOURS = {"paper": (220, 60, 60), "init": (240, 170, 40), "links": (40, 
 COLUMNS = ["camera", "flexion_true_deg", "method", "flexion_estimated_deg", "femur_footprints_mm",
            "tibia_footprints_mm", "femur_epiphysis_mm", "tibia_epiphysis_mm", "steps", "wall_seconds", "converged",
            "tibia_correction_deg", "tibia_correction_mm", "notes", "failed"]
+NAN = float("nan")
 
 
-def footprint_error(row: dict) -> float:
-    """Mean of the femur and tibia footprint errors of a row (mm)."""
-    return 0.5 * (row["femur_footprints_mm"] + row["tibia_footprints_mm"])
+@dataclass
+class MethodSummary:
+    """One method over a comparison's cases: how many ran and failed, and the medians over those that ran
+    (footprint and epiphysis errors in mm, |flexion error| in deg, wall time in s)."""
+
+    cases: int
+    failed: int
+    footprints_mm: float
+    epiphysis_mm: float
+    flexion_error_deg: float
+    wall_s: float
 
 
-def summary(rows: list[dict], methods) -> dict:
-    """Per method: cases, median footprint error (mm), median epiphysis error, median wall time (s),
-    median |flexion error| (deg), failures."""
+def _median(values) -> float:
+    values = list(values)
+    return statistics.median(values) if values else NAN
+
+
+def summary(rows: list[CompareRow], methods) -> dict[str, MethodSummary]:
+    """Per method, its :class:`MethodSummary`."""
     out = {}
     for m in methods:
-        ok = [r for r in rows if r["method"] == m and not r.get("failed")]
-        out[m] = {"cases": len(ok), "failed": sum(1 for r in rows if r["method"] == m and r.get("failed")),
-                  "footprints_mm": statistics.median(footprint_error(r) for r in ok) if ok else float("nan"),
-                  "epiphysis_mm": statistics.median(0.5 * (r["femur_epiphysis_mm"] + r["tibia_epiphysis_mm"])
-                                                    for r in ok) if ok else float("nan"),
-                  "wall_s": statistics.median(r["wall_seconds"] for r in ok) if ok else float("nan"),
-                  "flexion_error_deg": statistics.median(abs(r["flexion_estimated_deg"] - r["flexion_true_deg"])
-                                                         for r in ok) if ok else float("nan")}
+        ok = [r for r in rows if r.method == m and not r.failed]
+        out[m] = MethodSummary(len(ok), sum(1 for r in rows if r.method == m and r.failed),
+                               _median(r.footprints_mm for r in ok), _median(r.epiphysis_mm for r in ok),
+                               _median(abs(r.flexion_estimated_deg - r.flexion_true_deg) for r in ok),
+                               _median(r.wall_seconds for r in ok))
     return out
 
 
-def targets_check(summ: dict) -> list[str]:
-    """The issue's three numbers for method (iii), each as a line with met / NOT met."""
+def targets_check(summ: dict[str, MethodSummary]) -> list[str]:
+    """The comparison's three numbers for method (iii), each as a line with met / NOT met."""
     lines = []
-    if "links" in summ and summ["links"]["cases"]:
-        fp, wall = summ["links"]["footprints_mm"], summ["links"]["wall_s"]
+    if "links" in summ and summ["links"].cases:
+        fp, wall = summ["links"].footprints_mm, summ["links"].wall_s
         lines.append(f"(iii) median footprint error {fp:.2f} mm (target <= 2 mm): {'met' if fp <= 2 else 'NOT met'}")
-        if "paper" in summ and summ["paper"]["cases"]:
-            ratio = summ["paper"]["footprints_mm"] / fp if fp > 0 else float("inf")
+        if "paper" in summ and summ["paper"].cases:
+            ratio = summ["paper"].footprints_mm / fp if fp > 0 else float("inf")
             lines.append(f"(iii) {ratio:.1f}x lower than (i) (target >= 2x): {'met' if ratio >= 2 else 'NOT met'}")
         lines.append(f"(iii) median wall time {wall:.1f} s per case (target <= 5 s): {'met' if wall <= 5 else 'NOT met'}")
     return lines
 
 
-def write_csv(rows: list[dict], path) -> None:
+def write_csv(rows: list[CompareRow], path) -> None:
+    """The comparison table as CSV, one row per run, columns :data:`COLUMNS`."""
     with open(path, "w", newline="", encoding="utf-8") as fh:
         w = csv.DictWriter(fh, fieldnames=COLUMNS, extrasaction="ignore")
         w.writeheader()
         for r in rows:
-            w.writerow({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in r.items()})
+            d = dataclasses.asdict(r)
+            if r.failed:  # a failed run has no figures
+                d = {k: (v if k in ("method", "camera", "flexion_true_deg", "failed") else "") for k, v in d.items()}
+            w.writerow({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in d.items()})
 
 
-def floor_markdown(floor: list[dict]) -> str:
-    """A Markdown section from :func:`models.fem.prior_case.prior_floor`'s rows."""
+def floor_markdown(floor: list[FloorRow]) -> str:
+    """A Markdown section from :func:`knee.app.experiments.cases.prior_floor`'s rows."""
     lines = ["", "", "The prior's own tibia error: the prior posed at its best-matching flexion with the femur placed "
              "exactly (tibia target point errors, mm); of that pose error, the rotation about the tibia's long axis, "
              "which the skin around the shank cannot show (methods ii and iii correct the tibia's pose from the "
@@ -80,13 +101,14 @@ def floor_markdown(floor: list[dict]) -> str:
              "at best.", "",
              "| flexion | prior's flexion | tibia footprints | tibia epiphysis | axial rotation off (deg) | "
              "footprints, axial rotation alone |", "|---:|---:|---:|---:|---:|---:|"]
-    lines += [f"| {r['flexion_deg']:g} | {r['prior_flexion_deg']:.1f} | {r['tibia_footprints_mm']:.2f} | "
-              f"{r['tibia_epiphysis_mm']:.2f} | {r['axial_rotation_deg']:+.1f} | {r['tibia_footprints_axial_mm']:.2f} |"
+    lines += [f"| {r.flexion_deg:g} | {r.prior_flexion_deg:.1f} | {r.tibia_footprints_mm:.2f} | "
+              f"{r.tibia_epiphysis_mm:.2f} | {r.axial_rotation_deg:+.1f} | {r.tibia_footprints_axial_mm:.2f} |"
               for r in floor]
     return "\n".join(lines) + "\n"
 
 
-def markdown(rows: list[dict], methods, title: str) -> str:
+def markdown(rows: list[CompareRow], methods, title: str) -> str:
+    """The comparison table, the medians per method and the checks of :func:`targets_check`."""
     summ = summary(rows, methods)
     lines = [f"# {title}", "",
              "Target point errors: mean distance (mm) between the estimated and the true bone surface points, "
@@ -95,49 +117,44 @@ def markdown(rows: list[dict], methods, title: str) -> str:
              "tibia epiphysis | steps | wall (s) | converged | tibia corrected (deg / mm) | notes |",
              "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---|"]
     for r in rows:
-        if r.get("failed"):
-            lines.append(f"| {r['camera']} | {r['flexion_true_deg']:g} | {r['method']} | failed: {r['failed']} "
-                         f"| | | | | | | | | |")
+        if r.failed:
+            lines.append(f"| {r.camera} | {r.flexion_true_deg:g} | {r.method} | failed: {r.failed} | | | | | | | | | |")
             continue
-        deg, mm = r.get("tibia_correction_deg", float("nan")), r.get("tibia_correction_mm", float("nan"))
+        deg, mm = r.tibia_correction_deg, r.tibia_correction_mm
         corr = "" if not np.isfinite(deg) else f"{deg:.1f} / {mm:.1f}"
-        lines.append(f"| {r['camera']} | {r['flexion_true_deg']:g} | {r['method']} | {r['flexion_estimated_deg']:.1f} | "
-                     f"{r['femur_footprints_mm']:.2f} | {r['tibia_footprints_mm']:.2f} | {r['femur_epiphysis_mm']:.2f} | "
-                     f"{r['tibia_epiphysis_mm']:.2f} | {r['steps']} | {r['wall_seconds']:.1f} | {r['converged']} | "
-                     f"{corr} | {r.get('notes', '')} |")
+        lines.append(f"| {r.camera} | {r.flexion_true_deg:g} | {r.method} | {r.flexion_estimated_deg:.1f} | "
+                     f"{r.femur_footprints_mm:.2f} | {r.tibia_footprints_mm:.2f} | {r.femur_epiphysis_mm:.2f} | "
+                     f"{r.tibia_epiphysis_mm:.2f} | {r.steps} | {r.wall_seconds:.1f} | {r.converged} | "
+                     f"{corr} | {r.notes} |")
     lines += ["", "## Summary (medians over the cases)", "",
               "| method | cases | failed | footprints (mm) | epiphysis (mm) | flexion error (deg) | wall (s) |",
               "|---|---:|---:|---:|---:|---:|---:|"]
     for m, v in summ.items():
-        lines.append(f"| {METHOD_LABELS.get(m, m)} | {v['cases']} | {v['failed']} | {v['footprints_mm']:.2f} | "
-                     f"{v['epiphysis_mm']:.2f} | {v['flexion_error_deg']:.2f} | {v['wall_s']:.1f} |")
+        lines.append(f"| {METHOD_LABELS.get(m, m)} | {v.cases} | {v.failed} | {v.footprints_mm:.2f} | "
+                     f"{v.epiphysis_mm:.2f} | {v.flexion_error_deg:.2f} | {v.wall_s:.1f} |")
     checks = targets_check(summ)
     if checks:
         lines += [""] + [f"- {c}" for c in checks]
     return "\n".join(lines) + "\n"
 
 
-def plot(rows: list[dict], methods, path, title: str = "") -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    cams = sorted({r["camera"] for r in rows})
+def plot(rows: list[CompareRow], methods, path, title: str = "") -> None:
+    """Footprint and epiphysis errors against the true flexion, a colour per method and a line style per
+    camera (PNG)."""
+    cams = sorted({r.camera for r in rows})
     styles = ["-o", "--s", ":^", "-.v"]
     fig, ax = plt.subplots(1, 2, figsize=(12, 4.5), sharex=True)
     for m in methods:
         col = np.array(METHOD_COLOURS.get(m, (0, 0, 0))) / 255
         for ci, cam in enumerate(cams):
-            ok = sorted((r for r in rows if r["method"] == m and r["camera"] == cam and not r.get("failed")),
-                        key=lambda r: r["flexion_true_deg"])
+            ok = sorted((r for r in rows if r.method == m and r.camera == cam and not r.failed),
+                        key=lambda r: r.flexion_true_deg)
             if not ok:
                 continue
-            fl = [r["flexion_true_deg"] for r in ok]
+            fl = [r.flexion_true_deg for r in ok]
             label = METHOD_LABELS.get(m, m) + (f" [{cam}]" if len(cams) > 1 else "")
-            ax[0].plot(fl, [footprint_error(r) for r in ok], styles[ci % 4], color=col, label=label)
-            ax[1].plot(fl, [0.5 * (r["femur_epiphysis_mm"] + r["tibia_epiphysis_mm"]) for r in ok], styles[ci % 4],
-                       color=col)
+            ax[0].plot(fl, [r.footprints_mm for r in ok], styles[ci % 4], color=col, label=label)
+            ax[1].plot(fl, [r.epiphysis_mm for r in ok], styles[ci % 4], color=col)
     ax[0].axhline(2.0, color="grey", lw=0.8, ls=":")
     ax[0].set_title("ACL/PCL footprint error (mean of femur and tibia)")
     ax[1].set_title("epiphysis error (mean of femur and tibia)")
@@ -161,7 +178,7 @@ def compare_blueprint(methods) -> rrb.Blueprint:
 
 
 class CompareRecorder:
-    """``on_result`` callback of :func:`models.fem.prior_case.compare_cases` writing the recording."""
+    """``on_result`` callback of :func:`knee.app.experiments.cases.compare_cases` writing the recording."""
 
     def __init__(self, path, truth_phantom, prior_phantom, methods):
         """``truth_phantom``: the bones of the truth; ``prior_phantom``: those the methods' models are built
@@ -173,9 +190,7 @@ class CompareRecorder:
         self.faces = {k: np.asarray(getattr(prior_phantom, k).faces, np.uint32) for k in ("femur", "tibia")}
         self.cases: dict = {}
 
-    def __call__(self, cam_name, flexion_deg, method, result, truth_tf) -> None:
-        from toolkit.conventions import joint_to_pose
-
+    def __call__(self, cam_name: str, flexion_deg: float, method: str, result: MethodResult, truth_tf) -> None:
         key = (cam_name, flexion_deg)
         if key not in self.cases:
             self.cases[key] = len(self.cases)
@@ -192,9 +207,7 @@ class CompareRecorder:
         for name, v in result.surfaces.items():
             self.rec.log(f"compare/{method}/{name}", rr.Mesh3D(vertex_positions=np.asarray(v, np.float32),
                                                                triangle_indices=self.faces[name], albedo_factor=col))
-        e = result.errors
-        self.rec.log(f"metrics/{method}/footprints_mm",
-                     rr.Scalars(0.5 * (e["femur"]["footprints"][0] + e["tibia"]["footprints"][0])))
+        self.rec.log(f"metrics/{method}/footprints_mm", rr.Scalars(result.errors.footprints_mm))
 
     def finish(self) -> None:
         self.rec.flush()

@@ -14,8 +14,7 @@ True
 from __future__ import annotations
 
 import numpy as np
-
-from toolkit.errors import KneeInputError
+from knee.foundations.errors import KneeInputError
 
 
 def _points(p, n_min, what):

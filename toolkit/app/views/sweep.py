@@ -11,11 +11,10 @@ from __future__ import annotations
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
-
-from models.mechanism.solver import Mechanism, SweepResult
-from models.phantom import Phantom
-from toolkit import recording as rec_
-from toolkit.conventions import JOINT_COORDINATES, transform_points
+from knee.foundations import recording as rec_
+from knee.foundations.conventions import JOINT_COORDINATES, transform_points
+from knee.models.mechanism.solver import Mechanism, SweepResult
+from knee.models.phantom import Phantom
 
 LINK_COLOURS = {"ligament": (200, 40, 40), "contact": (40, 160, 60)}
 UNITS = ("deg", "deg", "deg", "mm", "mm", "mm")

@@ -1,7 +1,7 @@
 """Motion CSV files: one row per flexion angle, degrees and mm.
 
 The header is exactly :data:`SWEEP_HEADER`: TF then PF joint coordinates (see
-:mod:`toolkit.conventions`), then the largest closure residual (mm) and the condition number of the
+:mod:`knee.foundations.conventions`), then the largest closure residual (mm) and the condition number of the
 TF closure Jacobian.
 """
 
@@ -12,8 +12,7 @@ import math
 from pathlib import Path
 
 import numpy as np
-
-from toolkit.errors import KneeInputError
+from knee.foundations.errors import KneeInputError
 
 _COORDS = ["flexion_deg", "adduction_deg", "internal_rotation_deg", "anterior_mm", "proximal_mm", "lateral_mm"]
 SWEEP_HEADER = [f"tf_{c}" for c in _COORDS] + [f"pf_{c}" for c in _COORDS] + ["max_residual_mm",

@@ -3,33 +3,30 @@ flexion (``flexion_deg`` timeline); pressure maps as vertex colours on the condy
 
 from __future__ import annotations
 
-import math
+import matplotlib
 
-import numpy as np
-import rerun as rr
-import rerun.blueprint as rrb
-import trimesh
-
-from models.contact import CARTILAGE, contact_loads
-from models.gait import GaitResult
-from models.mechanism.solver import Mechanism
-from models.phantom import build_phantom
-from models.statics import solve_statics
-from toolkit import recording as R
-from toolkit.conventions import joint_to_pose
+matplotlib.use("Agg")  # files only, no display
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import rerun as rr  # noqa: E402
+import rerun.blueprint as rrb  # noqa: E402
+import scipy.sparse as sp  # noqa: E402
+import trimesh  # noqa: E402
+from knee.foundations import recording as R  # noqa: E402
+from knee.foundations.conventions import joint_to_pose  # noqa: E402
+from knee.models.contact import ContactAlongFlexion  # noqa: E402
+from knee.models.gait import GaitResult  # noqa: E402
+from knee.models.mechanism.solver import Mechanism  # noqa: E402
+from knee.models.phantom import build_phantom  # noqa: E402
 
 
 def _colours(values, vmax):
-    import matplotlib
-
     cmap = matplotlib.colormaps["viridis"]
     return (cmap(np.clip(values / max(vmax, 1e-9), 0, 1)) * 255).astype(np.uint8)
 
 
 def _vertex_values(cap: trimesh.Trimesh, face_values):
     """(n, faces) -> (n, vertices), each vertex the mean of its faces."""
-    import scipy.sparse as sp
-
     nf, nv = len(cap.faces), len(cap.vertices)
     inc = sp.csr_matrix((np.ones(3 * nf), (np.repeat(np.arange(nf), 3), cap.faces.ravel())), shape=(nf, nv))
     count = np.asarray(inc.sum(axis=0)).ravel()
@@ -100,12 +97,12 @@ def log_gait(rec, mech: Mechanism, res: GaitResult) -> None:
     # pressure maps on the condylar caps (elastic foundation), moved with the femur
     dirs = contact_directions(mech.params, res.tf)
     for name, e in res.contact.items():
-        if "cap" not in e:
+        if e.foundation is None:
             continue
-        cap = e["cap"]
+        cap = e.foundation.cap
         lk = mech.params.link(name)
-        vals = _vertex_values(cap, e["foundation_pressure"])
-        cols = _colours(vals, max(e["foundation_peak"].max(), 1e-6))
+        vals = _vertex_values(cap, e.foundation.pressure)
+        cols = _colours(vals, max(e.foundation.peak.max(), 1e-6))
         ent = f"leg/femur/{name}_pressure"
         rec.log(ent, rr.Mesh3D(vertex_positions=cap.vertices.astype(np.float32),
                                triangle_indices=cap.faces.astype(np.uint32)), static=True)
@@ -124,19 +121,15 @@ def log_gait(rec, mech: Mechanism, res: GaitResult) -> None:
         R.send_scalars(rec, f"metrics/knee_load/force_{ax}_N", "time", t, res.knee_force[:, k])
         R.send_scalars(rec, f"metrics/knee_load/moment_{ax}_Nm", "time", t, res.knee_moment[:, k] * 1e-3)
     for name, e in res.contact.items():
-        R.send_scalars(rec, f"metrics/pressure/{name}_hertz_peak", "time", t, e["hertz"].peak)
-        if "foundation_peak" in e:
-            R.send_scalars(rec, f"metrics/pressure/{name}_foundation_peak", "time", t, e["foundation_peak"])
-        R.send_scalars(rec, f"metrics/contact_force/{name}", "time", t, e["force"])
+        R.send_scalars(rec, f"metrics/pressure/{name}_hertz_peak", "time", t, e.hertz.peak)
+        if e.foundation is not None:
+            R.send_scalars(rec, f"metrics/pressure/{name}_foundation_peak", "time", t, e.foundation.peak)
+        R.send_scalars(rec, f"metrics/contact_force/{name}", "time", t, e.force)
     R.send_scalars(rec, "metrics/knee_flexion_deg", "time", t, np.degrees(res.trial.knee))
 
 
 def plot_gait(res: GaitResult, path, title: str = "") -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    """Knee flexion, member forces, contact forces and peak pressures over the cycle (PNG)."""
     t = res.trial.time
     fig, ax = plt.subplots(2, 2, figsize=(12, 7))
     ax[0, 0].plot(t, np.degrees(res.trial.knee), "k")
@@ -146,10 +139,10 @@ def plot_gait(res: GaitResult, path, title: str = "") -> None:
     ax[0, 1].set_title("member forces (N; tension +, contact compression -)")
     ax[0, 1].legend(fontsize=7)
     for nm, e in res.contact.items():
-        ax[1, 0].plot(t, e["force"], label=nm)
-        ax[1, 1].plot(t, e["hertz"].peak, label=f"{nm} Hertz")
-        if "foundation_peak" in e:
-            ax[1, 1].plot(t, e["foundation_peak"], "--", label=f"{nm} elastic foundation")
+        ax[1, 0].plot(t, e.force, label=nm)
+        ax[1, 1].plot(t, e.hertz.peak, label=f"{nm} Hertz")
+        if e.foundation is not None:
+            ax[1, 1].plot(t, e.foundation.peak, "--", label=f"{nm} elastic foundation")
     ax[1, 0].set_title("contact force (N, compression)")
     ax[1, 1].set_title("peak pressure (MPa)")
     ax[1, 0].legend(fontsize=7)
@@ -162,37 +155,20 @@ def plot_gait(res: GaitResult, path, title: str = "") -> None:
     plt.close(fig)
 
 
-def contact_vs_flexion(mech: Mechanism, load: float = 700.0, flexion_deg=None, cartilage=CARTILAGE) -> dict:
-    """Contact force, Hertz and elastic-foundation area and peak pressure at each contact against flexion,
-    under a compressive ``load`` (N) along the tibia's long axis (seed 001 Fig. 3d)."""
-    lo, hi = (math.degrees(v) for v in mech.assembly_range)
-    if flexion_deg is None:
-        flexion_deg = np.arange(max(0.0, math.ceil(lo)), min(120.0, math.floor(hi)) + 1e-9, 5.0)
-    fl = np.asarray(flexion_deg, float)
-    st = solve_statics(mech, np.radians(fl), [0.0, load, 0.0])
-    contacts = contact_loads(mech.params, st, cartilage)
-    return {"flexion_deg": fl, "statics": st,
-            "contacts": {k: {"force": c["force"], "hertz": c["hertz"], "ef_area": c["foundation_area"],
-                             "ef_peak": c["foundation_peak"]} for k, c in contacts.items()}}
-
-
-def plot_contact(res: dict, path, title: str = "") -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fl = res["flexion_deg"]
+def plot_contact(res: ContactAlongFlexion, path, title: str = "") -> None:
+    """Contact area and peak pressure against flexion, Hertz and elastic foundation (PNG, seed 001
+    Fig. 3d)."""
+    fl = res.flexion_deg
     fig, ax = plt.subplots(1, 2, figsize=(11, 4))
-    tot_h = sum(c["hertz"].area for c in res["contacts"].values())
-    tot_e = sum(c["ef_area"] for c in res["contacts"].values())
+    tot_h = sum(c.hertz.area for c in res.contacts.values())
+    tot_e = sum(c.foundation.area for c in res.contacts.values())
     ax[0].plot(fl, tot_h / 100, "k", label="total (Hertz)")
     ax[0].plot(fl, tot_e / 100, "k--", label="total (elastic foundation)")
-    for nm, c in res["contacts"].items():
-        ax[0].plot(fl, c["hertz"].area / 100, label=f"{nm} (Hertz)")
-        ax[0].plot(fl, c["ef_area"] / 100, ":", label=f"{nm} (elastic foundation)")
-        ax[1].plot(fl, c["hertz"].peak, label=f"{nm} (Hertz)")
-        ax[1].plot(fl, c["ef_peak"], ":", label=f"{nm} (elastic foundation)")
+    for nm, c in res.contacts.items():
+        ax[0].plot(fl, c.hertz.area / 100, label=f"{nm} (Hertz)")
+        ax[0].plot(fl, c.foundation.area / 100, ":", label=f"{nm} (elastic foundation)")
+        ax[1].plot(fl, c.hertz.peak, label=f"{nm} (Hertz)")
+        ax[1].plot(fl, c.foundation.peak, ":", label=f"{nm} (elastic foundation)")
     ax[0].set_title("contact area (cm$^2$)")
     ax[1].set_title("peak pressure (MPa)")
     for a in ax:

@@ -8,7 +8,7 @@ Everything is returned in **LPS** patient coordinates (mm), the DICOM convention
 * Markups JSON (``.mrk.json``, Slicer's schema): ``coordinateSystem`` ``LPS`` or ``RAS`` (default LPS);
   control points whose ``positionStatus`` is not ``defined`` are treated as missing.
 * Motion CSV: one row per frame; TF (and optionally PF) poses either as the six joint coordinates of
-  :mod:`toolkit.conventions` (columns ``tf_flexion_deg ... tf_lateral_mm``, ``pf_...``; degrees, mm) or
+  :mod:`knee.foundations.conventions` (columns ``tf_flexion_deg ... tf_lateral_mm``, ``pf_...``; degrees, mm) or
   as 4x4 matrices (columns ``tf_T00 ... tf_T23``, the first three rows, row-major). Rows with a missing
   or non-finite value are skipped and counted.
 
@@ -26,9 +26,8 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-
-from toolkit.conventions import joint_coordinates, joint_to_pose
-from toolkit.errors import KneeInputError
+from knee.foundations.conventions import joint_coordinates, joint_to_pose
+from knee.foundations.errors import KneeInputError
 
 SURFACE_SUFFIXES = (".stl", ".ply", ".obj")
 _SPACE_RE = re.compile(rb"SPACE\s*=\s*(LPS|RAS)", re.IGNORECASE)
@@ -250,7 +249,7 @@ def read_motion_csv(path, side: str = "right") -> MotionFile:
 
     Joint coordinates are anatomical and used as they are for either side; 4x4 matrices of a left knee
     (right-handed frames whose z points to the subject's right) are mirrored into the right-knee
-    equivalent (:func:`toolkit.conventions.joint_coordinates`)."""
+    equivalent (:func:`knee.foundations.conventions.joint_coordinates`)."""
     path = Path(path)
     if not path.is_file():
         raise KneeInputError(f"motion file {path} not found")

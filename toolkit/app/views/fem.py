@@ -19,10 +19,10 @@ from __future__ import annotations
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
-
-from models.fem.mapping import TrilinearMapping
-from models.fem.scene import knee_angles
-from toolkit import recording as R
+from knee.app.experiments.cases import CaseResult, CaseTruth
+from knee.foundations import recording as R
+from knee.models.fem.mapping import TrilinearMapping
+from knee.models.fem.scene import knee_angles
 
 
 def fem_blueprint() -> rrb.Blueprint:
@@ -52,19 +52,17 @@ def error_colours(d: np.ndarray, vmax: float = 10.0) -> np.ndarray:
 
 
 class FemRecorder:
-    """A step callback (``on_step`` of :func:`models.fem.case.run_standard_case`) writing a recording.
+    """A step callback (``on_step`` of :func:`knee.models.fem.methods.paper_method`) writing a recording.
 
     Parameters
     ----------
     path : recording file (``.rrd``), written from the start
     model : the association model
     every : log the geometry every ``every`` steps (the plots get every step)
-    truth : optional dict with ``targets`` the model's :class:`~models.fem.case.TargetPoints`, ``femur`` and
-        ``tibia`` the true target points (P, 3) (:func:`models.fem.case.truth_targets`), and ``meshes``
-        ``{name: trimesh}`` of the true bones, posed
+    truth : the case's truth (:func:`knee.app.experiments.cases.case_truth`), when it has one
     """
 
-    def __init__(self, path, model, every: int = 2, truth: dict | None = None):
+    def __init__(self, path, model, every: int = 2, truth: CaseTruth | None = None):
         self.rec = R.new_recording()
         R.save(self.rec, path, fem_blueprint())
         self.path = path
@@ -81,10 +79,10 @@ class FemRecorder:
                       "tibia": np.asarray(model.tibia_surface.faces, np.uint32),
                       "skin": np.asarray(model.skin_faces, np.uint32)}
         if truth is not None:
-            for name, mesh in truth.get("meshes", {}).items():
+            for name, mesh in truth.meshes.items():
                 R.log_mesh(rec, f"knee/truth/{name}", mesh, (120, 160, 235, 140))
-            self.tmaps = (TrilinearMapping(model.grid, truth["targets"].femur),
-                          TrilinearMapping(model.grid, truth["targets"].tibia))
+            self.tmaps = (TrilinearMapping(model.grid, truth.targets.femur),
+                          TrilinearMapping(model.grid, truth.targets.tibia))
         self._depth_logged = False
         self.last_step = -1
 
@@ -128,23 +126,25 @@ class FemRecorder:
             rec.log("metrics/surface/reference_mm", rr.Scalars(surf.reference))
             rec.log("metrics/surface/within", rr.Scalars(surf.within_fraction))
         if self.truth is not None:
-            for i, bone_name in enumerate(("femur", "tibia")):
-                d = np.linalg.norm(self.tmaps[i].apply(x) - self.truth[bone_name], axis=1)
-                fp = getattr(self.truth["targets"], f"{bone_name}_footprints")
+            truth = self.truth
+            for i, (bone_name, true, fp) in enumerate((("femur", truth.femur, truth.targets.femur_footprints),
+                                                        ("tibia", truth.tibia, truth.targets.tibia_footprints))):
+                # the model frame stands for the world here: the registration moves it by the noise only
+                d = np.linalg.norm(self.tmaps[i].apply(x) - true, axis=1)
                 rec.log(f"metrics/errors/{bone_name}_footprints", rr.Scalars(float(d[fp].mean())))
                 rec.log(f"metrics/errors/{bone_name}_epiphysis", rr.Scalars(float(d.mean())))
         if s.last_info is not None:
             rec.log("metrics/solver/cg_iterations", rr.Scalars(float(s.last_info.iterations)))
-        rec.log("metrics/solver/inverted_cells", rr.Scalars(float(getattr(model, "inverted_cells", 0))))
+        rec.log("metrics/solver/inverted_cells", rr.Scalars(float(model.inverted_cells)))
         self.last_step = k
 
-    def finish(self, result=None, message: str | None = None) -> None:
+    def finish(self, result: CaseResult | None = None, message: str | None = None) -> None:
         """Final error maps (vertex colours on the estimated target points) and a closing note."""
         rec = self.rec
-        if result is not None and result.distances:
-            for bone_name in ("femur", "tibia"):
-                rec.log(f"knee/errors/{bone_name}", rr.Points3D(result.points[bone_name].astype(np.float32),
-                                                              colors=error_colours(result.distances[bone_name]),
+        if result is not None and result.errors is not None:
+            for bone_name, points in result.estimated_targets().items():
+                rec.log(f"knee/errors/{bone_name}", rr.Points3D(points.astype(np.float32),
+                                                              colors=error_colours(result.errors.bone(bone_name).distances),
                                                               radii=[1.0]), static=True)
         if message:
             rec.log("log", rr.TextLog(message), static=True)

@@ -1,0 +1,477 @@
+"""The ways to deform the association model toward a depth point cloud, with and without the mechanism.
+
+Each method takes a built :class:`~knee.models.fem.scene.AssociationModel` and a one-sided point cloud
+(P, 3) in mm, in the world frame (the camera's scene; roughly the model's femur frame) and returns a
+:class:`Reconstruction`: where the bones are, in that world frame, with the run's figures. None of them
+sees a truth; :mod:`knee.models.evaluation` measures a reconstruction against one.
+
+* ``"paper"`` (i), :func:`paper_method`: seed 000's method. The cloud is registered to the model by ICP
+  of the seen thigh onto the model's thigh (the thigh is held); bone forces act until the femur-tibia
+  angle is below 100 degrees, then surface forces pull the skin towards the depth points until it stops
+  moving. Where the forces cannot bend the knee that far (the phantom's tissue holds it near 36 degrees),
+  the bone phase also ends when the knee has stopped flexing under them (:func:`bone_phase_stalled`; the
+  result says which criterion ended it): the extra steps only cost time (measured on the demo case: the
+  same result, 135 steps instead of 232).
+* ``"init"`` (ii), ``"links"`` (iii), ``"kinematics"`` (iv), :func:`prior_method`: the mechanism as the
+  kinematic prior. The flexion is estimated from the cloud (:func:`knee.models.prior.estimate_flexion`),
+  the tibia's pose there is corrected from the shank's depth points as far as they show it
+  (:func:`knee.models.prior.correct_tibia`: a MAP estimate weighed by the prior's accuracy, the rotation
+  about the shank's axis left at the prior's). (iv) stops there: the bones posed by the mechanism. (ii)
+  moves femur and tibia along the mechanism's path to that pose with the grid nodes of their cells
+  prescribed (Dirichlet conditions, 4 increments, the correction blended in along them), makes that
+  configuration the stress-free reference, then runs the surface phase with the paper's two springs.
+  (iii) as (ii), with the mechanism's five links as stiff springs (1000 N/mm, the paper's collateral
+  stiffness) between points rigidly attached to femur and tibia, their rest lengths the links' lengths at
+  the corrected pose. Each link end is the minimum-norm affine combination of every bone node within
+  60 mm of its nearest node (a wide, non-coplanar set: the medial contact's tibial end, a sphere centre
+  58 mm above the facet, extrapolated the bone's small elastic deformation into millimetres when attached
+  to its 12 nearest nodes). Springs rather than exact constraints: the implicit solver's matrix-free CG
+  takes them without new unknowns, their wide coupling enters its factorised preconditioner as a rank-5
+  (Woodbury) term. (ii) and (iii) look for an equilibrium, not a motion: quasi-static steps
+  (:class:`quasi_static`).
+
+Fallbacks, each stated in the reconstruction's notes: when the flexion cannot be estimated from the cloud
+(too few points, too little of the shank seen), (ii) and (iii) run the paper's method and (iv) fails;
+when the FEM bones cannot satisfy the prior's links (a link more than 4 mm off its length at
+convergence), (iii) releases the links and continues as (ii).
+
+Frames: the model's frame is the femur frame at extension; ``T_world_model`` (4, 4) takes it to the
+world. A divergence raises :class:`~knee.foundations.errors.DivergenceError` naming the step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
+from knee.foundations.errors import DivergenceError, KneeInputError
+from knee.foundations.pointclouds import icp
+from knee.models.fem.elements import hex_inverted
+from knee.models.fem.fields import MappedSprings, affine_point_map
+from knee.models.fem.forces import BoneForces, SurfaceForces
+from knee.models.fem.mapping import TrilinearMapping
+from knee.models.fem.scene import AssociationModel, bone_cell_masks, knee_angles
+from knee.models.mechanism.solver import Mechanism
+from knee.models.prior import (
+    FlexionEstimate,
+    TibiaCorrection,
+    correct_tibia,
+    estimate_flexion,
+    small_pose,
+)
+
+METHODS = ("paper", "init", "links", "kinematics")
+#: Fewest depth points that can place the knee.
+MIN_POINTS = 500
+#: Fewest depth points on the thigh (more than 70 mm above the joint) for the registration.
+MIN_THIGH_POINTS = 200
+#: Fraction of the seen thigh's points the registration must match.
+MIN_ICP_FITNESS = 0.3
+#: Fraction of the grid's live cells inverted beyond which a run is stopped as diverged.
+MAX_INVERTED_FRACTION = 0.05
+#: mm: a link end is attached to every bone node within this of its nearest node's distance.
+LINK_REACH = 60.0
+#: mm: beyond the prior's accuracy (2 mm per endpoint, so up to 4 mm on a length).
+LINK_TOLERANCE = 4.0
+#: The surface phase stops when the skin's remaining motion to its equilibrium, extrapolated from the last
+#: two steps, is below this (mm, mean over the skin points): a quarter of the depth noise (1 mm at 35 cm).
+#: 0.1 mm took 20-40 % more steps for footprint errors within 0.05 mm (five standard cases, measured).
+SETTLED_MM = 0.25
+
+
+@dataclass
+class Reconstruction:
+    """Where a method put the bones, and how the run went.
+
+    Attributes
+    ----------
+    method : str
+        One of :data:`METHODS` (the one that ran: a fallback is stated in ``notes``).
+    flexion_deg : float
+        The flexion of the reconstructed knee (deg).
+    steps, wall_seconds, converged
+        Implicit steps taken, the run's wall time (s; without building the model), whether the run
+        settled.
+    T_world_model : (4, 4) float
+        The model (femur) frame in the world, from the registration.
+    grid_x : (N, 3) float or None
+        The FEM grid's final node positions (model frame); None for the mechanism alone.
+    rigid : dict or None
+        Method (iv): ``{"femur": T, "tibia": T}``, (4, 4) poses taking the model's rest bone coordinates
+        (the femur frame at extension) to the world.
+    notes : list of str
+        Fallbacks and warnings, one line each.
+    estimate : FlexionEstimate or None
+        The prior's flexion estimate (methods ii-iv), without its skin model (a cache).
+    """
+
+    method: str
+    flexion_deg: float
+    steps: int
+    wall_seconds: float
+    converged: bool
+    T_world_model: np.ndarray
+    grid: object = field(repr=False, default=None)
+    grid_x: np.ndarray | None = field(repr=False, default=None)
+    rigid: dict | None = None
+    notes: list = field(default_factory=list)
+    icp_fitness: float = float("nan")
+    estimate: FlexionEstimate | None = field(default=None, repr=False)
+    tibia_correction: TibiaCorrection | None = None
+    # the paper's method: why its bone-force phase ended ("angle": femur-tibia angle below 100 deg, the
+    # paper's criterion; "stalled": the knee stopped flexing under the forces; "cap": a third of the
+    # step budget), the steps and the flexion it reached, and the run's history per step
+    steps_bone_phase: int = 0
+    bone_phase_end: str = ""
+    bone_phase_flexion_deg: float = float("nan")
+    history: dict = field(default_factory=dict, repr=False)
+
+    def locate(self, bone: str, rest_points) -> np.ndarray:
+        """Where points of a bone at rest (``(P, 3)``, model frame: the femur frame at extension) are in
+        the reconstruction, world frame."""
+        rest_points = np.asarray(rest_points, float)
+        if self.grid_x is not None:
+            return transform_points(self.T_world_model, TrilinearMapping(self.grid, rest_points).apply(self.grid_x))
+        return transform_points(self.rigid[bone], rest_points)
+
+
+def bone_phase_stalled(flexions, steps: int = 10, deg: float = 0.5) -> bool:
+    """Whether the knee has stopped flexing under the bone forces: the largest flexion reached (a running
+    maximum, as the flexion oscillates under the forces) grew less than ``deg`` over the last ``steps``
+    steps of ``flexions`` (deg, one per bone-force step). ``steps=0`` or ``deg=0`` never stalls (the running
+    maximum cannot fall)."""
+    f = np.asarray(flexions, float)
+    if steps <= 0 or len(f) <= steps:
+        return False
+    reached = np.maximum.accumulate(f)
+    return bool(reached[-1] - reached[-1 - steps] < deg)
+
+
+def bone_phase_note(r: Reconstruction) -> str:
+    """One line on how the bone-force phase of the paper's method ended (empty when no bone phase ran)."""
+    if r.bone_phase_end == "angle":
+        return (f"bone forces stopped at {r.bone_phase_flexion_deg:.1f} deg flexion: femur-tibia angle below 100 deg "
+                f"(the paper's criterion) after {r.steps_bone_phase} steps")
+    if r.bone_phase_end == "stalled":
+        return (f"bone forces stopped at {r.bone_phase_flexion_deg:.1f} deg flexion after {r.steps_bone_phase} steps: "
+                f"the knee stopped flexing under them (the paper's femur-tibia angle below 100 deg not reached)")
+    if r.bone_phase_end == "cap":
+        return (f"bone forces stopped at {r.bone_phase_flexion_deg:.1f} deg flexion at the step cap "
+                f"({r.steps_bone_phase} steps; femur-tibia angle below 100 deg not reached)")
+    return ""
+
+
+def check_state(model: AssociationModel, step: int, x0_extent: float) -> int:
+    """Stop with :class:`DivergenceError` (naming the step) on non-finite positions, an energy blow-up (a
+    node moved more than twice the model's extent, or faster than 20 m/s) or more than 5 % of the grid's
+    (not dropped) cells inverted; returns the number of inverted cells (also kept in
+    ``model.inverted_cells``)."""
+    s = model.solver
+    if not (np.all(np.isfinite(s.x)) and np.all(np.isfinite(s.v))):
+        raise DivergenceError(f"the FEM diverged at step {step}: non-finite positions or velocities", step)
+    disp = float(np.abs(s.x - model.grid.X).max())
+    speed = float(np.abs(s.v).max())
+    if disp > 2.0 * x0_extent or speed > 2.0e4:
+        raise DivergenceError(f"the FEM diverged at step {step}: energy blow-up (largest displacement {disp:.0f} mm, "
+                              f"largest speed {speed:.0f} mm/s)", step)
+    alive = model.soft.el.alive  # cells dropped at a re-reference carry no stiffness and are not counted
+    inverted = int(hex_inverted(s.x[model.grid.cells[alive]]).sum())
+    model.inverted_cells = inverted
+    if inverted > MAX_INVERTED_FRACTION * alive.sum():
+        raise DivergenceError(f"the FEM diverged at step {step}: {inverted} of {int(alive.sum())} grid cells "
+                              f"inverted", step)
+    return inverted
+
+
+def register_to_model(model: AssociationModel, points, iterations: int = 60) -> tuple[np.ndarray, float, np.ndarray]:
+    """Bring a point cloud (world frame, roughly aligned with the model) to the model's frame by ICP of the
+    seen thigh onto the model's thigh (the thigh is held, so the femur is where the model has it).
+
+    Returns the points (P, 3) in the model frame, the ICP fitness and the transform (4, 4) applied (world
+    to model). Raises :class:`KneeInputError` on too few points or a failed registration. ``iterations``:
+    of the ICP (fewer suffice when the points come registered by the flexion estimate)."""
+    pts = np.asarray(points, float)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < MIN_POINTS:
+        raise KneeInputError(f"the point cloud has {len(pts) if pts.ndim == 2 else 0} points; at least {MIN_POINTS} "
+                             f"are needed to place the knee")
+    thigh_model, thigh_normals = model.thigh_samples()
+    thigh_seen = pts[pts[:, 1] > 70.0]
+    if len(thigh_seen) < MIN_THIGH_POINTS:
+        raise KneeInputError(f"only {len(thigh_seen)} depth points on the thigh (more than 70 mm above the joint); "
+                             f"at least {MIN_THIGH_POINTS} are needed for the registration")
+    T_reg, fitness, _ = icp(thigh_seen[::3], thigh_model, max_distance=10.0, iterations=iterations,
+                            target_normals=thigh_normals)
+    if fitness < MIN_ICP_FITNESS:
+        raise KneeInputError(f"the registration of the point cloud to the model failed (ICP fitness {fitness:.2f}, "
+                             f"below {MIN_ICP_FITNESS})")
+    return pts @ T_reg[:3, :3].T + T_reg[:3, 3], fitness, T_reg
+
+
+#: ``on_step(k, phase, model, surface_forces, bone_forces)``, called after every step of the paper's method.
+StepCallback = Callable[[int, str, AssociationModel, SurfaceForces, BoneForces], None]
+
+
+def paper_method(model: AssociationModel, points, bone_force_scale: float = 1.0, surface_k: float = 2.0,
+                 max_steps: int = 400, bone_stall_deg: float = 0.5, bone_stall_steps: int = 10,
+                 on_step: StepCallback | None = None) -> Reconstruction:
+    """Seed 000's method on a point cloud (P, 3), mm, world frame (see the module docstring).
+
+    ``on_step(k, phase, model, surface_forces, bone_forces)`` is called after every step (e.g. to record
+    it or show progress; the surface forces act in the "surface" phase only)."""
+    t_start = time.perf_counter()
+    pts, fitness, T_reg = register_to_model(model, points)
+    s = model.solver
+    held = bool(s.fixed.any())
+    bone = BoneForces(model.femur, model.tibia, scale=bone_force_scale, use_femur=not held)
+    surf = SurfaceForces(model.grid, model.skin_vertices, pts, k=surface_k)
+    hist = {"step": [], "flexion_deg": [], "reference_mm": [], "within": [], "skin_motion_mm": [],
+            "iterations": [], "inverted": []}
+    phase, bone_steps, calm, converged = "bone", 0, 0, False
+    bone_end, bone_flex, bone_flexions = "", float("nan"), []
+    skin_prev = model.skin_vertices.copy()
+    smap = surf.map
+    extent = float(np.ptp(model.grid.X, axis=0).max())
+    try:
+        for k in range(max_steps):
+            if phase == "bone":
+                info = s.step(bone.forces)
+                inverted = check_state(model, k, extent)
+                bone_steps += 1
+                flex, between = knee_angles(model)
+                bone_flexions.append(flex)
+                stalled = bone_phase_stalled(bone_flexions, bone_stall_steps, bone_stall_deg)
+                if between < 100.0 or stalled or bone_steps >= max_steps // 3:
+                    bone_end = "angle" if between < 100.0 else ("stalled" if stalled else "cap")
+                    bone_flex = flex
+                    phase = "surface"
+                    s.fields.append(surf)
+                    s.invalidate()  # the surface springs enter the preconditioner
+            else:
+                info = s.step()
+                inverted = check_state(model, k, extent)
+                flex, between = knee_angles(model)
+            skin_now = smap.apply(s.x)
+            motion = float(np.linalg.norm(skin_now - skin_prev, axis=1).mean())
+            skin_prev = skin_now
+            hist["step"].append(k)
+            hist["flexion_deg"].append(flex)
+            hist["reference_mm"].append(surf.reference if phase == "surface" else np.nan)
+            hist["within"].append(surf.within_fraction if phase == "surface" else np.nan)
+            hist["skin_motion_mm"].append(motion)
+            hist["iterations"].append(info.iterations)
+            hist["inverted"].append(inverted)
+            if on_step is not None:
+                on_step(k, phase, model, surf, bone)
+            if phase == "surface":
+                calm = calm + 1 if motion < 0.01 else 0
+                if calm >= 5:
+                    converged = True
+                    break
+    finally:
+        if surf in s.fields:
+            s.fields.remove(surf)
+    flex, _ = knee_angles(model)
+    r = Reconstruction("paper", flex, len(hist["step"]), time.perf_counter() - t_start, converged,
+                       invert_poses(T_reg), model.grid, s.x.copy(), icp_fitness=fitness, steps_bone_phase=bone_steps,
+                       bone_phase_end=bone_end, bone_phase_flexion_deg=bone_flex,
+                       history={k: np.asarray(v) for k, v in hist.items()})
+    if bone_end in ("stalled", "cap"):  # the paper's criterion not reached: say so
+        r.notes.append(bone_phase_note(r))
+    return r
+
+
+def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: float, increments: int = 4,
+                          settle: int = 1, correction_xi: np.ndarray | None = None) -> int:
+    """Move the tibia along the prior's path from extension to ``alpha`` (rad) with the bone cells'
+    nodes prescribed (femur's held at rest), solving the grid's static equilibrium at each increment
+    (quasi-static steps, see :class:`quasi_static`), and make that configuration the model's stress-free
+    reference; returns the steps taken. ``correction_xi`` (6,): a pose correction of the tibia in its own
+    frame at ``alpha``, rotation vector (rad) and translation (mm)
+    (:class:`knee.models.prior.TibiaCorrection`), blended in along the increments."""
+    s = model.solver
+    mf, mt = bone_cell_masks(model.grid, model.femur, model.tibia)
+    mask = mf | mt
+    X = model.grid.X
+    T0 = joint_to_pose(prior.motion_at(np.array([0.0]))[0][0])
+    fractions = np.arange(1, increments + 1) / increments
+    poses = joint_to_pose(prior.motion_at(alpha * fractions)[0])
+    if correction_xi is not None:
+        poses = poses @ np.stack([small_pose(f * np.asarray(correction_xi, float)) for f in fractions])
+    poses = poses @ invert_poses(T0)
+    steps = 0
+    target = X.copy()
+    # the contact pairs the tibia's motion along the increments can bring, in the pattern from the start
+    # (one symbolic analysis instead of one per increment that brings new pairs)
+    s.reserve_pattern(model.contact.pattern_reserve_for_motion(np.concatenate([np.eye(4)[None], poses])))
+    for T in list(poses) + [poses[-1]] * settle:
+        target[mt] = transform_points(T, X[mt])
+        s.step(prescribed=(mask, target))
+        steps += 1
+    s.v[:] = 0.0
+    # the initialised configuration becomes the stress-free reference: the model has no muscles to hold
+    # the flexion, so without this the tissue's bending energy would return the knee to extension;
+    # elements inverted by the motion (crushed tissue behind the knee) are dropped, and the bone contact
+    # takes its activation distances from this configuration
+    x = s.x
+    kept = model.soft.el.rebase(x)
+    kept += model.femur.el.rebase(model.femur.bone_positions(x))
+    kept += model.tibia.el.rebase(model.tibia.bone_positions(x))
+    model.contact.rebase(x)
+    model.inverted_at_init = kept
+    # grid nodes left with no element at all (every cell around them was dropped, and no bone node is
+    # embedded next to them) carry only their tiny mass: held still, they stay out of the solve, which
+    # otherwise sees a million-fold change of their diagonal whenever a surface spring switches on them
+    alive = np.zeros(len(X), bool)
+    alive[model.grid.cells[model.soft.el.alive].ravel()] = True
+    for bone in (model.femur, model.tibia):
+        alive[np.unique(bone.map.J.indices)] = True
+    s.fixed = s.fixed | ~alive
+    model.isolated_at_init = int((~alive).sum())
+    s.set_prescribed(None)
+    s.invalidate()
+    return steps
+
+
+def link_springs(model: AssociationModel, prior: Mechanism, k: float = 1000.0, T_tibia: np.ndarray | None = None):
+    """The prior's five TF links as springs between femur- and tibia-attached points (attached at
+    extension). Rest lengths: the prior's link lengths, or with ``T_tibia`` (the tibia's pose relative to
+    the femur, model frame, e.g. corrected from the depth points) the links' lengths at that pose: the
+    prior with its five lengths re-fitted so that its path passes through that pose."""
+    T0 = joint_to_pose(prior.motion_at(np.array([0.0]))[0][0])
+    a = np.vstack([lk.femur for lk in prior.params.links])
+    local = np.vstack([lk.tibia for lk in prior.params.links])
+    b = transform_points(T0, local)
+    rest = [lk.length for lk in prior.params.links]
+    if T_tibia is not None:
+        rest = np.linalg.norm(a - transform_points(T_tibia, local), axis=1)
+    maps = (affine_point_map(model.femur, a, reach=LINK_REACH), affine_point_map(model.tibia, b, reach=LINK_REACH))
+    return MappedSprings(model.grid, a, b, k, rest_length=rest, maps=maps, low_rank=True)
+
+
+class quasi_static:
+    """Within this context the implicit solver takes quasi-static steps: the Rayleigh stiffness damping
+    is off, so with the (tiny) lumped masses each step is a Newton step towards the static equilibrium,
+    ((1 + dt a) M + dt^2 K) dx = dt^2 f, instead of a third of one as with the paper's damping (b = 0.1 s,
+    dt = 0.05 s). The prior's methods look for the equilibrium, not for a motion: the same answer in
+    about half the steps."""
+
+    def __init__(self, solver):
+        self.s = solver
+        self.b = solver.b
+
+    def __enter__(self):
+        self.b, self.s.b = self.s.b, 0.0
+        self.s.invalidate()
+        return self.s
+
+    def __exit__(self, *exc):
+        self.s.b = self.b
+        self.s.invalidate()
+        return False
+
+
+def remaining_motion(motion: float, previous: float, cap: float = 0.9) -> float:
+    """The motion still to come after a step that moved ``motion`` following one that moved ``previous``,
+    if the motions keep falling by their last ratio r (capped at ``cap``): the geometric tail
+    motion r / (1 - r)."""
+    r = min(motion / max(previous, 1e-12), cap)
+    return motion * r / (1.0 - r)
+
+
+def surface_phase(model: AssociationModel, surf: SurfaceForces, max_steps: int, steps: int) -> tuple[int, bool]:
+    """Steps with the surface forces until the skin has settled; returns (steps, converged).
+
+    Quasi-static steps are Newton steps, whose skin motions m_k fall about geometrically: the motion still
+    to come is about m_k r / (1 - r), r = m_k / m_(k-1) (capped at 0.9). The phase stops when m_k plus
+    that is below :data:`SETTLED_MM`, at about half the steps of waiting for the motion itself to vanish."""
+    s = model.solver
+    skin_prev = surf.map.apply(s.x)
+    extent = float(np.ptp(model.grid.X, axis=0).max())
+    last = None
+    for _ in range(max_steps):
+        s.step()
+        steps += 1
+        check_state(model, steps, extent)  # the same divergence checks as the paper's method
+        skin = surf.map.apply(s.x)
+        motion = float(np.linalg.norm(skin - skin_prev, axis=1).mean())
+        skin_prev = skin
+        if last is not None and motion + remaining_motion(motion, last) < SETTLED_MM:
+            return steps, True
+        last = motion
+    return steps, False
+
+
+def prior_method(method: str, model: AssociationModel, prior: Mechanism, points, max_steps: int = 80,
+                 **paper_options) -> Reconstruction:
+    """Methods (ii) ``"init"``, (iii) ``"links"`` and (iv) ``"kinematics"`` (and (i) ``"paper"``, for
+    one entry point to all four) on a point cloud (P, 3), mm, world frame, with ``prior`` the (fitted)
+    mechanism of the subject the model was built from. See the module docstring for the methods and
+    their fallbacks; ``paper_options`` go to :func:`paper_method`."""
+    if method not in METHODS:
+        raise KneeInputError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    if method == "paper":
+        return paper_method(model, points, **paper_options)
+    t0 = time.perf_counter()
+    pts = np.asarray(points, float)
+    try:
+        est = estimate_flexion(prior, model.phantom, pts)
+    except KneeInputError as e:
+        if method == "kinematics":
+            raise
+        r = paper_method(model, pts, **paper_options)
+        r.notes.insert(0, f"flexion not estimated ({e}); fallback: the paper's method")
+        return r
+    notes = list(est.warnings)
+    if method == "kinematics":
+        tf, _ = prior.motion_at(np.array([est.flexion]))
+        T0 = joint_to_pose(prior.motion_at(np.array([0.0]))[0][0])
+        T_tib = est.T_world_model @ joint_to_pose(tf[0])
+        return Reconstruction(method, math.degrees(est.flexion), 0, time.perf_counter() - t0, True,
+                              est.T_world_model, rigid={"femur": est.T_world_model, "tibia": T_tib @ invert_poses(T0)},
+                              notes=notes, estimate=dataclasses.replace(est, skin=None))
+    # the cloud in the model frame: the registration of the prior-posed skin, refined on the thigh alone
+    # (the thigh is held in the model, so the femur is placed by the thigh as in the paper's method)
+    # (30 ICP iterations: the estimate's registration is already close; 60 gave the same transforms)
+    pts_model, fitness, T_reg = register_to_model(model, transform_points(invert_poses(est.T_world_model), pts),
+                                                  iterations=30)
+    T_world = est.T_world_model @ invert_poses(T_reg)
+    # the tibia off the prior's path as far as the shank's points show (its axial rotation stays the prior's)
+    corr = correct_tibia(prior, model.phantom, pts_model, est.flexion, skin=est.skin)
+    if not corr.applied:
+        notes.append(corr.note)
+    s = model.solver
+    with quasi_static(s):
+        steps = initialise_from_prior(model, prior, est.flexion, correction_xi=corr.xi)
+        surf = SurfaceForces(model.grid, model.skin_vertices, pts_model, k=2.0)
+        s.fields.append(surf)
+        links = None
+        if method == "links":
+            links = link_springs(model, prior, T_tibia=corr.T)
+            s.fields.append(links)
+        s.invalidate()
+        try:
+            steps, converged = surface_phase(model, surf, max_steps, steps)
+            if links is not None:
+                off = np.abs(np.linalg.norm(links.mb.apply(s.x) - links.ma.apply(s.x), axis=1) - links.L0)
+                if off.max() > LINK_TOLERANCE:
+                    names = [lk.name for lk in prior.params.links]
+                    notes.append(f"the FEM bones do not satisfy the prior's links ({names[int(off.argmax())]} "
+                                 f"{off.max():.2f} mm off its length); fallback: links released, continued as (ii)")
+                    s.fields.remove(links)
+                    links = None
+                    s.invalidate()
+                    steps, converged = surface_phase(model, surf, max_steps, steps)
+        finally:
+            for f in (surf, links):
+                if f is not None and f in s.fields:
+                    s.fields.remove(f)
+            s.invalidate()
+    flex, _ = knee_angles(model)
+    return Reconstruction(method, flex, steps, time.perf_counter() - t0, converged, T_world, model.grid, s.x.copy(),
+                          notes=notes, icp_fitness=fitness, estimate=dataclasses.replace(est, skin=None),
+                          tibia_correction=corr)

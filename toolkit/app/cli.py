@@ -1,0 +1,165 @@
+"""The ``knee`` command line: the parser, and the dispatch to one module per command
+(:mod:`knee.app.commands`).
+
+    knee models
+    knee sweep MODEL [--from 0] [--to 120] [--step 1] [--out motion.csv] [--rrd sweep.rrd] [--force]
+    knee demo [--out DIR] [--flexion 60] [--kinematics-only]
+    knee synth-subject OUT_DIR [--model volunteer] [--seed N] [--frames 60]
+    knee fit SUBJECT_DIR --out OUT_DIR [--seed N] [--quick] [--no-global] [--no-recording] [--force]
+    knee gait MODEL [--trial CSV] [--mass 72] [--height 1.75] [--out DIR] [--rrd FILE] [--force]
+    knee contact MODEL [--load 700] [--out DIR] [--force]
+    knee osteotomy MODEL --bone tibia|femur --angle 8 [--plane px,py,pz,nx,ny,nz] [--hinge hx,hy,hz,ax,ay,az]
+                   [--release mcl] [--trial CSV] [--mass 72] [--height 1.75] [--out DIR] [--force]
+    knee compare MODEL [--truth MODEL] [--flexion 30:120:15] [--cameras oblique,frontal,lateral] [--out DIR]
+    knee fem MODEL [--flexion 90] [--truth MODEL] [--camera oblique|frontal|lateral|AZ,EL,DIST] [--rrd FILE]
+             [--cloud FILE | --depth FILE --intrinsics fx,fy,cx,cy [--depth-scale 1]] [--pose FILE]
+
+Angles in degrees, lengths in mm. Exit codes: 0 success; 2 bad input (one line ``knee: error: ...``);
+3 a numerical failure on good input (the mechanism does not assemble, a simulation diverges, a solve does
+not converge; one line ``knee: error: ...``); 130 interrupted (Ctrl-C). No existing file is overwritten
+unless ``--force`` is given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from knee.app.console import error
+from knee.foundations.errors import (
+    EXIT_BAD_INPUT,
+    EXIT_INTERRUPTED,
+    EXIT_NUMERICAL,
+    KneeInputError,
+    KneeNumericalError,
+)
+
+#: Each command's module in :mod:`knee.app.commands`, imported when the command runs (so that ``knee
+#: models`` does not pay for open3d and matplotlib): it defines ``run(args) -> int``.
+COMMANDS = {"models": "models", "sweep": "sweep", "demo": "demo", "synth-subject": "synth_subject", "fit": "fit",
+            "gait": "gait", "contact": "contact", "osteotomy": "osteotomy", "compare": "compare", "fem": "fem"}
+
+
+def _gait_options(p) -> None:
+    """The gait trial and the subject's anthropometry (knee gait, knee osteotomy)."""
+    p.add_argument("--trial", help="gait CSV (README, 'Gait'); default: the bundled normative cycle")
+    p.add_argument("--mass", type=float, default=72.0, help="body mass, kg (72)")
+    p.add_argument("--height", type=float, default=1.75, help="body height, m (1.75)")
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with its usage errors as one ``knee: error:`` line and exit code 2."""
+
+    def error(self, message):  # noqa: D401 - argparse's hook
+        self.exit(EXIT_BAD_INPUT, f"knee: error: {self.prog.split()[-1] if ' ' in self.prog else 'knee'}: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = _Parser(prog="knee", description="Knee kinematics toolkit (mm, degrees at the CLI).")
+    sub = ap.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    sub.add_parser("models", help="list the bundled parameter sets")
+    sp = sub.add_parser("sweep", help="solve the mechanism over a flexion range")
+    sp.add_argument("model", help="a bundled parameter set (see 'knee models') or a TOML file")
+    sp.add_argument("--from", dest="a_from", type=float, default=0.0, help="first flexion angle, deg (0)")
+    sp.add_argument("--to", dest="a_to", type=float, default=120.0, help="last flexion angle, deg (120)")
+    sp.add_argument("--step", type=float, default=1.0, help="step, deg (1)")
+    sp.add_argument("--out", help="CSV file to write (default: CSV on standard output)")
+    sp.add_argument("--rrd", help="Rerun recording to write")
+    sp.add_argument("--force", action="store_true", help="replace existing output files")
+    dp = sub.add_parser("demo", help="the main job on the bundled default knee, with a Rerun recording")
+    dp.add_argument("--out", default="knee-demo", help="output folder (a new one if it exists)")
+    dp.add_argument("--flexion", type=float, default=60.0, help="flexion of the virtual depth map, deg (60)")
+    dp.add_argument("--kinematics-only", action="store_true", help="only the sweep (no FEM)")
+    ss = sub.add_parser("synth-subject", help="write a synthetic subject folder from a parameter set")
+    ss.add_argument("out_dir", help="folder to create (must not exist or be empty)")
+    ss.add_argument("--model", default="volunteer", help="parameter set with a patella (volunteer)")
+    ss.add_argument("--seed", type=int, default=0, help="random seed (0)")
+    ss.add_argument("--frames", type=int, default=60, help="frames of the measured motion, 0-120 deg (60)")
+    fp = sub.add_parser("fit", help="fit a subject-specific mechanism to a subject folder")
+    fp.add_argument("subject_dir", help="the subject folder (README, 'Subject folders'); never written to")
+    fp.add_argument("--out", required=True, help="output folder (parameter files, report, figure, recording)")
+    fp.add_argument("--seed", type=int, default=0, help="seed of the global stage (0); same seed, same result")
+    fp.add_argument("--no-global", action="store_true", help="skip differential evolution (local stage only)")
+    fp.add_argument("--quick", action="store_true", help="a small global stage (a first look; not for results)")
+    fp.add_argument("--no-recording", action="store_true", help="do not write the Rerun recording")
+    fp.add_argument("--force", action="store_true", help="write into a non-empty output folder")
+    fp.add_argument("--quiet", action="store_true", help="no progress bar")
+    gp = sub.add_parser("gait", help="inverse dynamics, link forces and contact pressures over a gait cycle")
+    gp.add_argument("model", help="a bundled parameter set with a patella, or a TOML file")
+    _gait_options(gp)
+    gp.add_argument("--out", default="knee-gait", help="output folder (knee-gait)")
+    gp.add_argument("--rrd", help="recording path (default OUT/gait.rrd)")
+    gp.add_argument("--force", action="store_true", help="write into a non-empty output folder")
+    cp = sub.add_parser("contact", help="contact area and peak pressure against flexion under a load")
+    cp.add_argument("model")
+    cp.add_argument("--load", type=float, default=700.0, help="compressive load along the tibia, N (700)")
+    cp.add_argument("--out", default="knee-contact", help="output folder (knee-contact)")
+    cp.add_argument("--force", action="store_true")
+    op = sub.add_parser("osteotomy", help="virtual osteotomy: cut, open/close a wedge, recompute axes, kinematics, gait")
+    op.add_argument("model")
+    op.add_argument("--bone", choices=("tibia", "femur"), default="tibia")
+    op.add_argument("--angle", type=float, required=True, help="wedge angle, deg (+ opens opposite the hinge)")
+    op.add_argument("--plane", help="cut plane: point and normal in the bone frame, px,py,pz,nx,ny,nz (mm); "
+                                    "default: transverse, 35 mm below (tibia) / 60 mm above (femur) the joint")
+    op.add_argument("--hinge", help="hinge: point and axis, hx,hy,hz,ax,ay,az (mm); default: 8 mm inside the "
+                                    "lateral cortex, along x")
+    op.add_argument("--release", action="append", help="release a ligament whose insertion moves (repeatable)")
+    _gait_options(op)
+    op.add_argument("--out", default="knee-osteotomy", help="output folder (knee-osteotomy)")
+    op.add_argument("--force", action="store_true")
+    co = sub.add_parser("compare", help="the four ways to use the mechanism with the FEM, on standard cases")
+    co.add_argument("model", help="the prior: a bundled parameter set or a TOML file")
+    co.add_argument("--truth", help="parameter set generating the truth (default: MODEL, with the prior = MODEL "
+                                    "perturbed by --perturb)")
+    co.add_argument("--flexion", default="30:120:15", help="true flexion angles, FROM:TO:STEP or a list (30:120:15)")
+    co.add_argument("--cameras", default="oblique", help="oblique, frontal, lateral separated by commas, or "
+                                                         "entries AZ,EL,DIST separated by ';' (oblique)")
+    co.add_argument("--methods", default="paper,init,links,kinematics", help="which methods (all four)")
+    co.add_argument("--perturb", type=float, default=2.0, help="largest endpoint move of the default prior, mm (2)")
+    co.add_argument("--seed", type=int, default=3, help="seed of the perturbation and the depth noise (3)")
+    co.add_argument("--no-noise", action="store_true", help="no depth noise")
+    co.add_argument("--out", default="knee-compare", help="output folder (knee-compare)")
+    co.add_argument("--force", action="store_true", help="write into a non-empty output folder")
+    co.add_argument("--quiet", action="store_true", help="no progress bar")
+    fe = sub.add_parser("fem", help="the association FEM model deformed toward a depth map (the paper's method)")
+    fe.add_argument("model", help="the parameter set the model is built from (bundled name or TOML)")
+    fe.add_argument("--flexion", type=float, default=90.0, help="flexion of the standard case's truth, deg (90)")
+    fe.add_argument("--truth", help="parameter set generating the truth (default: MODEL)")
+    fe.add_argument("--camera", default="oblique", help="oblique, frontal, lateral or AZ,EL,DIST (oblique)")
+    fe.add_argument("--no-noise", action="store_true", help="no depth noise")
+    fe.add_argument("--seed", type=int, default=0, help="seed of the depth noise (0)")
+    fe.add_argument("--cloud", help="a measured point cloud (.ply/.pcd/.xyz, mm) instead of the virtual camera")
+    fe.add_argument("--depth", help="a measured depth image (16-bit PNG or .npy) instead of the virtual camera")
+    fe.add_argument("--intrinsics", help="fx,fy,cx,cy of the depth image (pixels)")
+    fe.add_argument("--depth-scale", type=float, default=1.0, help="depth units to mm (1)")
+    fe.add_argument("--pose", help="text file with the 4x4 camera-to-model transform (default identity)")
+    fe.add_argument("--max-steps", type=int, default=400, help="step limit (400)")
+    fe.add_argument("--bone-stall", type=float, default=0.5, metavar="DEG",
+                    help="end the bone forces when the largest flexion reached grows less than DEG over 10 steps "
+                         "(0.5; 0: only the paper's femur-tibia angle below 100 deg or a third of --max-steps)")
+    fe.add_argument("--rrd", help="Rerun recording to write")
+    fe.add_argument("--force", action="store_true", help="replace an existing recording")
+    fe.add_argument("--quiet", action="store_true", help="no progress bar")
+    return ap
+
+
+def main(argv=None) -> int:
+    """Run the command line with ``argv`` (default ``sys.argv[1:]``); returns the exit code."""
+    try:
+        args = build_parser().parse_args(argv)
+        command = importlib.import_module(f"knee.app.commands.{COMMANDS[args.command]}")
+        return command.run(args)
+    except KneeInputError as e:
+        return error(str(e), EXIT_BAD_INPUT)
+    except KneeNumericalError as e:
+        return error(str(e), EXIT_NUMERICAL)
+    except KeyboardInterrupt:
+        print(file=sys.stderr)
+        return error("interrupted", EXIT_INTERRUPTED)
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

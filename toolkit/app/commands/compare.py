@@ -1,0 +1,90 @@
+"""``knee compare MODEL``: the four methods of using the mechanism with the FEM on standard cases, with
+the table, the plot and the recording (:mod:`knee.app.experiments.cases`, :mod:`knee.app.reports.compare`)."""
+
+from __future__ import annotations
+
+from knee.app.console import ProgressBar, flexion_list, out_dir, say
+from knee.app.experiments.cases import compare_cases, prior_floor, truth_phantom
+from knee.app.reports.compare import (
+    CompareRecorder,
+    floor_markdown,
+    markdown,
+    plot,
+    summary,
+    targets_check,
+    write_csv,
+)
+from knee.fitting.optimize import perturb_endpoints
+from knee.foundations.errors import KneeInputError
+from knee.models.fem.depth import CAMERA_PLACEMENTS, DepthNoise, camera_from_spec
+from knee.models.fem.methods import METHODS
+from knee.models.fem.scene import build_association_model
+from knee.models.mechanism import Mechanism
+from knee.models.mechanism.params import load_model
+
+
+def camera_list(text: str) -> list[str]:
+    """Camera entries: placement names separated by commas, or any entries (AZ,EL,DIST) separated by ';'."""
+    t = str(text).strip()
+    parts = t.split(";") if ";" in t else t.split(",")
+    parts = [p.strip() for p in parts if p.strip()]
+    if ";" not in t and not all(p.lower() in CAMERA_PLACEMENTS for p in parts):
+        parts = [t]  # a single AZ,EL,DIST camera
+    if not parts:
+        raise KneeInputError("--cameras is empty")
+    return parts
+
+
+def run(args) -> int:
+    flexions = flexion_list(args.flexion)
+    cams = {c: camera_from_spec(c) for c in camera_list(args.cameras)}
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    bad = [m for m in methods if m not in METHODS]
+    if bad or not methods:
+        raise KneeInputError(f"--methods must be a comma list of {', '.join(METHODS)}, got {args.methods!r}")
+    if not (0.0 <= args.perturb <= 10.0):
+        raise KneeInputError(f"--perturb must be 0-10 mm, got {args.perturb}")
+    out = out_dir(args.out, args.force)
+    params = load_model(args.model)
+    if args.truth:
+        truth, prior = Mechanism.from_name(args.truth), Mechanism(params)
+        origin = f"truth {truth.params.name}, prior {params.name}"
+    else:
+        truth = Mechanism(params)
+        prior = Mechanism(perturb_endpoints(params, 0.5 * args.perturb, args.perturb, seed=args.seed))
+        origin = (f"truth {params.name}; prior = {params.name} with every TF link endpoint moved "
+                  f"{0.5 * args.perturb:g}-{args.perturb:g} mm (seed {args.seed})")
+    out.mkdir(parents=True, exist_ok=True)
+    say(f"knee compare: {origin}; {len(flexions)} flexion angles x {len(cams)} camera(s) x {len(methods)} methods")
+    recorder = CompareRecorder(out / "compare.rrd", truth_phantom(truth), truth_phantom(prior), methods)
+    bar = ProgressBar()
+    progress = None if args.quiet else (lambda i, n, t: bar(i / n, t))
+    try:
+        rows = compare_cases(truth, prior, flexions, cams, methods, noise=None if args.no_noise else DepthNoise(),
+                             seed=args.seed, progress=progress, on_result=recorder)
+    finally:
+        recorder.finish()
+    write_csv(rows, out / "compare.csv")
+    title = f"Kinematic priors for the FEM: {origin}"
+    floor = prior_floor(build_association_model(prior), truth, prior, flexions)
+    (out / "compare.md").write_text(markdown(rows, methods, title) + floor_markdown(floor), encoding="utf-8")
+    plot(rows, methods, out / "compare.png", title)
+    summ = summary(rows, methods)
+    print("method      cases  failed  footprints (mm)  epiphysis (mm)  |flexion error| (deg)  wall (s)")
+    for m, v in summ.items():
+        print(f"{m:11s} {v.cases:5d}  {v.failed:6d}  {v.footprints_mm:15.2f}  {v.epiphysis_mm:14.2f}  "
+              f"{v.flexion_error_deg:20.2f}  {v.wall_s:8.1f}")
+    for line in targets_check(summ):
+        print(line)
+    print("the prior's own tibia error (best-matching flexion, femur placed exactly), footprints mm: " +
+          ", ".join(f"{r.flexion_deg:g} deg {r.tibia_footprints_mm:.2f}" for r in floor))
+    print("of which the axial rotation alone (the skin cannot show it; (ii) and (iii) correct the rest from the "
+          "shank's points), footprints mm: " +
+          ", ".join(f"{r.flexion_deg:g} deg {r.tibia_footprints_axial_mm:.2f} ({r.axial_rotation_deg:+.1f} deg)"
+                    for r in floor))
+    notes = sorted({r.notes for r in rows if r.notes} | {f"failed: {r.failed}" for r in rows if r.failed})
+    for n in notes:
+        print(f"note: {n}")
+    print(f"table: {out / 'compare.csv'}, {out / 'compare.md'}\nplot: {out / 'compare.png'}\n"
+          f"recording: {out / 'compare.rrd'}  (open with: rerun {out / 'compare.rrd'})")
+    return 0

@@ -1,0 +1,81 @@
+"""``knee demo``: the whole pipeline on the bundled volunteer: the sweep and its recording, then the
+association FEM with the kinematic prior against the paper's method and the mechanism alone on a
+virtual depth map (:mod:`knee.app.demo`)."""
+
+from __future__ import annotations
+
+import math
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+from knee.app.commands.sweep import run_sweep, summary
+from knee.app.console import error, say
+from knee.app.demo import run_demo_comparison
+from knee.app.reports.compare import METHOD_LABELS
+from knee.foundations.errors import EXIT_NUMERICAL, KneeInputError
+from knee.models.mechanism import Mechanism
+
+
+def new_folder(base: Path) -> Path:
+    """``base``, or ``base-2``, ``base-3``, ... : the first that does not exist (created)."""
+    out, k = base, 2
+    while out.exists():  # never overwrite an earlier demo
+        out = base.with_name(f"{base.name}-{k}")
+        k += 1
+    out.mkdir(parents=True)
+    return out
+
+
+def run(args) -> int:
+    if not (math.isfinite(args.flexion) and 15.0 <= args.flexion <= 110.0):
+        raise KneeInputError(f"--flexion must be 15-110 deg (within the prior's range), got {args.flexion}")
+    out_dir = new_folder(Path(args.out))
+    fem = None
+    if not args.kinematics_only:
+        # the FEM comparison (two worker processes) starts first and runs while the sweep is solved and
+        # recorded: the workers' start-up overlaps it
+        say(f"knee demo: virtual depth map at {args.flexion:g} deg; the association FEM with the kinematic prior "
+            f"and with the paper's forcing, two processes (started) ...")
+        runner = ThreadPoolExecutor(max_workers=1)
+        fem = runner.submit(run_demo_comparison, out_dir, args.flexion, log=say)
+        runner.shutdown(wait=False)
+    mech = Mechanism.from_name("volunteer")
+    hi = math.floor(math.degrees(mech.assembly_range[1]))
+    a = np.arange(0.0, hi + 1.0, 1.0)
+    csv_path, rrd_path = out_dir / "volunteer-sweep.csv", out_dir / "volunteer-sweep.rrd"
+    say(f"knee demo: sweeping the bundled 'volunteer' knee over 0..{hi} deg ...")
+    mech, res, dt = run_sweep("volunteer", a, csv_path, rrd_path)
+    print(summary(mech, res, dt))
+    i = np.searchsorted(res.flexion, math.radians(90.0))
+    if i < res.flexion.size:
+        tf, pf = res.tf[i], res.pf[i]
+        print(f"at {math.degrees(tf[0]):.0f} deg: TF adduction {math.degrees(tf[1]):+.2f} deg, internal rotation "
+              f"{math.degrees(tf[2]):+.2f} deg, translation ({tf[3]:+.1f}, {tf[4]:+.1f}, {tf[5]:+.1f}) mm; "
+              f"PF flexion {math.degrees(pf[0]):.1f} deg")
+    print(f"motion table: {csv_path}")
+    print(f"recording:    {rrd_path}")
+    print(f"open it with: rerun {rrd_path}")
+    if not res.complete:
+        if fem is not None and not fem.cancel():
+            fem.exception()  # the comparison already runs: let it finish (its files) before reporting
+        return error(res.message, EXIT_NUMERICAL)
+    if fem is None:
+        return 0
+    out = fem.result()
+    print(f"\nFEM at {args.flexion:g} deg flexion (truth: volunteer; prior: volunteer with TF endpoints moved 1-2 mm; "
+          f"oblique camera, depth noise):")
+    print(f"{'method':44s} {'flexion':>8s} {'footprints':>11s} {'epiphysis':>10s} {'steps':>6s} {'wall (s)':>9s}")
+    for r in out.rows:
+        print(f"{METHOD_LABELS[r.method]:44s} {r.flexion_estimated_deg:7.1f}° {r.footprints_mm:8.2f} mm "
+              f"{r.epiphysis_mm:7.2f} mm {r.steps:6d} {r.wall_seconds:9.1f}")
+        if math.isfinite(r.tibia_correction_deg):
+            print(f"  the tibia's pose corrected from the shank's depth points: {r.tibia_correction_deg:.1f} deg, "
+                  f"{r.tibia_correction_mm:.1f} mm off the prior's path (its axial rotation kept)")
+        if r.notes:
+            print(f"  note: {r.notes}")
+    print(f"comparison: {out_dir / 'compare.md'}, {out_dir / 'compare.png'}")
+    print(f"open it with: rerun {out_dir / 'compare.rrd'}")
+    print(f"(the FEM part took {out.seconds:.0f} s)", file=sys.stderr)
+    return 0

@@ -1,0 +1,120 @@
+"""``knee fem MODEL``: the association model deformed toward a depth map by the paper's method, on the
+standard case or on a measured point cloud or depth image, with an optional recording."""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from knee.app.console import ProgressBar, check_new, error, numbers, say
+from knee.app.experiments.cases import case_points, case_truth, run_standard_case
+from knee.app.views.fem import FemRecorder
+from knee.foundations.errors import EXIT_NUMERICAL, DivergenceError, KneeInputError
+from knee.foundations.pointclouds import load_depth_image, load_point_cloud
+from knee.models.fem.depth import DepthNoise, camera_from_spec
+from knee.models.fem.methods import bone_phase_note
+from knee.models.fem.scene import FemSettings, build_association_model
+from knee.models.mechanism import Mechanism
+
+
+def measured_points(args):
+    """A measured point cloud (P, 3) from --cloud or --depth/--intrinsics (None when neither is given)."""
+    if args.cloud and args.depth:
+        raise KneeInputError("give either --cloud or --depth, not both")
+    pose = None
+    if args.pose:
+        try:
+            pose = np.loadtxt(args.pose, dtype=float).reshape(4, 4)
+        except (OSError, ValueError):
+            raise KneeInputError(f"--pose {args.pose}: not a readable 4x4 matrix (16 numbers)") from None
+    if args.cloud:
+        pts = load_point_cloud(args.cloud)
+        return pts if pose is None else pts @ pose[:3, :3].T + pose[:3, 3]
+    if args.depth:
+        if not args.intrinsics:
+            raise KneeInputError("--depth needs --intrinsics fx,fy,cx,cy (pixels)")
+        fx, fy, cx, cy = numbers(args.intrinsics, 4, "--intrinsics")
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+        if not (args.depth_scale > 0 and math.isfinite(args.depth_scale)):
+            raise KneeInputError(f"--depth-scale must be a positive number, got {args.depth_scale}")
+        return load_depth_image(args.depth, K, pose, args.depth_scale)
+    if args.intrinsics or args.pose:
+        raise KneeInputError("--intrinsics and --pose go with --depth or --cloud")
+    return None
+
+
+def run(args) -> int:
+    rrd = Path(args.rrd) if args.rrd else None
+    check_new(rrd, args.force)
+    if not (math.isfinite(args.flexion) and 0.0 <= args.flexion <= 150.0):
+        raise KneeInputError(f"--flexion must be 0-150 deg, got {args.flexion}")
+    if args.max_steps < 1:
+        raise KneeInputError(f"--max-steps must be positive, got {args.max_steps}")
+    if not (math.isfinite(args.bone_stall) and args.bone_stall >= 0.0):
+        raise KneeInputError(f"--bone-stall must be a non-negative angle in degrees, got {args.bone_stall}")
+    cam = camera_from_spec(args.camera)
+    measured = measured_points(args)
+    mech = Mechanism.from_name(args.model)
+    truth = Mechanism.from_name(args.truth) if args.truth else mech
+    if measured is None and not truth.in_range(math.radians(args.flexion)):
+        lo, hi = (math.degrees(v) for v in truth.assembly_range)
+        raise KneeInputError(f"--flexion {args.flexion:g} deg is outside the assembly range of "
+                             f"{truth.params.name} ({lo:.1f} to {hi:.1f} deg)")
+    say(f"knee fem: building the association model of {mech.params.name} ...")
+    t0 = time.perf_counter()
+    model = build_association_model(mech, FemSettings())
+    say(f"  grid {tuple(int(v) for v in model.grid.shape)} ({len(model.grid.cells)} cells, {model.grid.n_nodes} nodes), "
+        f"bones {len(model.femur.el.cells)} + {len(model.tibia.el.cells)} tetrahedra; {time.perf_counter() - t0:.1f} s")
+    truth_tf, truth_info = None, None
+    if measured is None:
+        pts, truth_tf = case_points(truth, args.flexion, cam, DepthNoise() if not args.no_noise else None,
+                                    args.seed, model.settings)
+        truth_info = case_truth(model, mech, truth, truth_tf)
+        say(f"  case: {truth.params.name} at {args.flexion:g} deg seen by the {args.camera} camera, {len(pts)} depth points")
+    else:
+        pts = measured
+        say(f"  measured point cloud: {len(pts)} points (no truth: no target point errors)")
+    recorder = FemRecorder(rrd, model, every=max(2, args.max_steps // 80), truth=truth_info) if rrd is not None else None
+    bar = ProgressBar()
+
+    def on_step(k, phase, model_, surf, bone):
+        if recorder is not None:
+            recorder(k, phase, model_, surf, bone)
+        if not args.quiet:
+            bar((k + 1) / args.max_steps, f"step {k + 1} [{phase} forces]")
+
+    try:
+        r = run_standard_case(mech, args.flexion, cam, model=model, seed=args.seed, bone_stall_deg=args.bone_stall,
+                              max_steps=args.max_steps, points=pts, truth_tf=truth_tf, on_step=on_step)
+    except DivergenceError as e:
+        if not args.quiet:
+            print(file=sys.stderr)
+        if recorder is not None:
+            recorder.finish(message=str(e))
+            say(f"partial recording (steps 0-{recorder.last_step}): {rrd}")
+        return error(str(e), EXIT_NUMERICAL)
+    rec = r.reconstruction
+    if not args.quiet:
+        bar(1.0, f"{rec.steps} steps")
+    if recorder is not None:
+        recorder.finish(r, f"{rec.steps} steps, {'converged' if rec.converged else 'not converged'}")
+    print(f"{mech.params.name}: {rec.steps} steps ({rec.steps_bone_phase} with bone forces) in {rec.wall_seconds:.1f} s "
+          f"({rec.steps / rec.wall_seconds:.1f} steps/s), {'converged' if rec.converged else 'NOT converged'}; "
+          f"registration ICP fitness {rec.icp_fitness:.2f}")
+    if rec.bone_phase_end:
+        print(bone_phase_note(rec))
+    if r.errors is not None:
+        print(f"flexion: true {r.flexion_true_deg:.1f} deg, FEM {r.flexion_estimated_deg:.1f} deg")
+        print("target point errors, mean ± sd (mm):")
+        for bone in ("femur", "tibia"):
+            e = r.errors.bone(bone)
+            print(f"  {bone:5s}  ACL/PCL footprints {e.footprints.mean:6.2f} ± {e.footprints.sd:5.2f}   "
+                  f"epiphysis {e.epiphysis.mean:6.2f} ± {e.epiphysis.sd:5.2f}")
+    else:
+        print(f"flexion of the FEM bones: {r.flexion_estimated_deg:.1f} deg")
+    if rrd is not None:
+        print(f"recording: {rrd}  (open with: rerun {rrd})")
+    return 0

@@ -1,0 +1,39 @@
+"""``knee fit SUBJECT_DIR --out OUT_DIR``: a subject-specific mechanism from a subject folder, with its
+parameter files, report, figure and recording (:mod:`knee.app.reports.fit`)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from knee.app.console import ProgressBar
+from knee.app.reports.fit import check_output_folder, write_outputs
+from knee.fitting.pipeline import fit_subject
+
+
+def run(args) -> int:
+    subject_dir, out_dir = Path(args.subject_dir), Path(args.out)
+    check_output_folder(subject_dir, out_dir, args.force)
+    bar = ProgressBar() if not args.quiet else None
+    o = fit_subject(subject_dir, seed=args.seed, global_stage=not args.no_global, progress=bar,
+                    effort="quick" if args.quick else "full")
+    if bar:
+        bar(0.98, "writing the outputs")
+    files = write_outputs(o, out_dir, recording=not args.no_recording)
+    if bar:
+        bar(1.0, "done")
+    fe = o.fitted_errors
+    print(f"subject {o.subject.name}: fitted on {len(o.motion.tf)} frames in {o.seconds.fit:.1f} s "
+          f"(total {o.seconds.total:.1f} s)")
+    names = ("adduction", "int.rot", "anterior", "proximal", "lateral")
+    print("TF MAE  " + "  ".join(f"{n} {v:.2f}" for n, v in zip(names, fe.tf.mae[1:])) + "  (deg, mm)")
+    if fe.pf is not None:
+        pn = ("flexion", "tilt", "rotation", "anterior", "proximal", "lateral")
+        print("PF MAE  " + "  ".join(f"{n} {v:.2f}" for n, v in zip(pn, fe.pf.mae)) + "  (deg, mm)")
+    for w in o.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    for k, f in files.items():
+        print(f"{k:15s} {f}")
+    if "recording" in files:
+        print(f"open the recording with: rerun {files['recording']}")
+    return 0

@@ -1,0 +1,96 @@
+"""What the command modules share: output-path checks, argument parsers for lists of numbers, and the
+progress bar that renders the library's progress callbacks on standard error.
+
+Every check raises :class:`~knee.foundations.errors.KneeInputError` with one line naming the flag.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+from knee.foundations.errors import EXIT_BAD_INPUT, KneeInputError
+
+
+def error(message: str, code: int = EXIT_BAD_INPUT) -> int:
+    """Print ``knee: error: message`` (one line) on standard error; returns ``code``."""
+    print(f"knee: error: {' '.join(str(message).split())}", file=sys.stderr)
+    return code
+
+
+def check_new(path: Path | None, force: bool) -> None:
+    """An output file to be written: refused when it exists (without ``force``) or its folder does not."""
+    if path is None:
+        return
+    if path.exists() and not force:
+        raise KneeInputError(f"{path} exists; not overwritten (use --force to replace it)")
+    if not path.parent.exists():
+        raise KneeInputError(f"directory {path.parent} does not exist")
+
+
+def out_dir(path: str, force: bool) -> Path:
+    """An output folder (created later, once the inputs have been checked): refused when it exists and is
+    not an empty folder, unless ``force``."""
+    d = Path(path)
+    if d.exists() and (not d.is_dir() or (any(d.iterdir()) and not force)):
+        raise KneeInputError(f"output folder {d} exists and is not empty; not overwritten (use --force)")
+    return d
+
+
+def numbers(text: str, n: int, what: str, hint: str = "") -> np.ndarray:
+    """``n`` finite comma-separated numbers, or a one-line error naming ``what``."""
+    try:
+        v = np.array([float(x) for x in str(text).split(",")])
+    except ValueError:
+        v = np.zeros(0)
+    if v.size != n or not np.all(np.isfinite(v)):
+        count = {3: "three", 4: "four", 6: "six"}.get(n, str(n))
+        raise KneeInputError(f"{what} must be {count} comma-separated numbers{hint}, got {text!r}")
+    return v
+
+
+def flexion_list(text: str) -> list[float]:
+    """``A:B:STEP`` (inclusive) or a comma list of angles, deg."""
+    t = str(text).strip()
+    try:
+        if ":" in t:
+            a, b, st = (float(v) for v in t.split(":"))
+            if not st > 0 or b < a:
+                raise ValueError
+            vals = list(np.arange(a, b + 1e-9, st))
+        else:
+            vals = [float(v) for v in t.split(",")]
+    except ValueError:
+        raise KneeInputError(f"--flexion must be FROM:TO:STEP (STEP > 0, TO >= FROM) or a comma list of "
+                             f"degrees, got {text!r}") from None
+    if not vals or len(vals) > 50 or not all(math.isfinite(v) and 0.0 <= v <= 150.0 for v in vals):
+        raise KneeInputError(f"--flexion must give 1-50 angles within 0-150 deg, got {text!r}")
+    return [float(v) for v in vals]
+
+
+class ProgressBar:
+    """A one-line progress bar on standard error: ``[######....]  45%  text``; call it with the fraction
+    done and a short text."""
+
+    def __init__(self, width: int = 30, stream=None):
+        self.width = width
+        self.stream = stream or sys.stderr
+        self.last = ""
+
+    def __call__(self, fraction: float, text: str) -> None:
+        f = min(max(float(fraction), 0.0), 1.0)
+        k = int(round(f * self.width))
+        line = f"[{'#' * k}{'.' * (self.width - k)}] {100 * f:3.0f}%  {text}"
+        pad = max(len(self.last) - len(line), 0)
+        self.stream.write("\r" + line + " " * pad)
+        if f >= 1.0:
+            self.stream.write("\n")
+        self.stream.flush()
+        self.last = line
+
+
+def say(text: str) -> None:
+    """A status line on standard error (results go to standard output)."""
+    print(text, file=sys.stderr, flush=True)

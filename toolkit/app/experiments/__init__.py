@@ -1,0 +1,1 @@
+"""Experiment runners: standard cases on the phantom and the comparison of the FEM methods."""
