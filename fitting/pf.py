@@ -144,7 +144,7 @@ class PFFit(MotionFit):
 
     def model_motion(self, w):
         r = self._solve(w)
-        return r["pf"][self.index], r["ok"]
+        return r.pf[self.index], r.ok
 
     def _compared(self, w):
         pf, ok = self.model_motion(w)
@@ -152,10 +152,10 @@ class PFFit(MotionFit):
 
     def jacobian(self, w) -> np.ndarray:
         r = self._solve(w)
-        if not r["ok"]:
+        if not r.ok:
             return np.zeros((6 * len(self.alphas), self.n_var))
         p, D = self._maps(w)
-        sens = pf_sensitivities(p, self.kinds, r["Z"][self.index], self.alphas)
+        sens = pf_sensitivities(p, self.kinds, r.Z[self.index], self.alphas)
         dq = self._units(sens.d_params[:, 6:12, :])
         return dq.reshape(-1, p.size) @ D
 

@@ -231,7 +231,24 @@ def _vee(W):
     return np.stack([W[..., 2, 1], W[..., 0, 2], W[..., 1, 0]], axis=-1)
 
 
-def knee_kinematics(mech: Mechanism, alpha, alpha_d, alpha_dd, h: float = 1e-4):
+@dataclass(frozen=True)
+class KneeKinematics:
+    """The knee's motion at n frames: the tibia's pose ``T`` (n, 4, 4) in the femur frame (mm), its twist
+    velocity ``v`` and acceleration ``a`` (n, 6) (linear m/s, m/s^2 then angular rad/s, rad/s^2, in the tibia
+    frame), the TF and PF joint coordinates (n, 6), and the patella's helical angle ``theta`` (n,) (rad)
+    with its rates."""
+
+    T: np.ndarray
+    v: np.ndarray
+    a: np.ndarray
+    tf: np.ndarray
+    pf: np.ndarray
+    theta: np.ndarray
+    theta_d: np.ndarray
+    theta_dd: np.ndarray
+
+
+def knee_kinematics(mech: Mechanism, alpha, alpha_d, alpha_dd, h: float = 1e-4) -> KneeKinematics:
     """Tibia pose (n, 4, 4) in the femur frame, body velocity (n, 6) and its time derivative (n, 6)
     (linear m/s, angular rad/s, in the tibia frame), and the patella's helical angle with its rates."""
     al = np.asarray(alpha, float)
@@ -264,8 +281,8 @@ def knee_kinematics(mech: Mechanism, alpha, alpha_d, alpha_dd, h: float = 1e-4):
     th = np.unwrap(np.arctan2(s, c), axis=1)
     dth = (th[:, 2] - th[:, 0]) / (2 * h)
     ddth = (th[:, 2] - 2 * th[:, 1] + th[:, 0]) / h ** 2
-    return {"T": T0, "v": v, "a": a, "tf": tf.reshape(n, 3, 6)[:, 1], "pf": pf.reshape(n, 3, 6)[:, 1],
-            "theta": th[:, 1], "theta_d": dth * ad, "theta_dd": ddth * ad ** 2 + dth * add}
+    return KneeKinematics(T0, v, a, tf.reshape(n, 3, 6)[:, 1], pf.reshape(n, 3, 6)[:, 1], th[:, 1], dth * ad,
+                          ddth * ad ** 2 + dth * add)
 
 
 @dataclass
@@ -320,15 +337,15 @@ def analyse_gait(mech: Mechanism, trial: GaitTrial, anthro: Anthropometry | None
     a = np.zeros((n, model.nv))
     hip_zyx = trial.hip[:, [0, 2, 1]]
     q[:, 0:3], v[:, 0:3], a[:, 0:3] = hip_zyx, hd[:, [0, 2, 1]], hdd[:, [0, 2, 1]]
-    T = kin["T"]
+    T = kin.T
     quat = _quaternions(T[:, :3, :3])
     q[:, 3:6] = T[:, :3, 3] * 1e-3
     q[:, 6:10] = quat
-    v[:, 3:9], a[:, 3:9] = kin["v"], kin["a"]
+    v[:, 3:9], a[:, 3:9] = kin.v, kin.a
     iq_a, iv_a = model.joints[limb.joints["ankle"]].idx_q, model.joints[limb.joints["ankle"]].idx_v
     iq_p, iv_p = model.joints[limb.joints["patella"]].idx_q, model.joints[limb.joints["patella"]].idx_v
     q[:, iq_a], v[:, iv_a], a[:, iv_a] = trial.ankle, ad, add
-    q[:, iq_p], v[:, iv_p], a[:, iv_p] = kin["theta"], kin["theta_d"], kin["theta_dd"]
+    q[:, iq_p], v[:, iv_p], a[:, iv_p] = kin.theta, kin.theta_d, kin.theta_dd
     # centre of pressure on the sole (foot frame, m); default heel-to-forefoot over stance
     Lf = anthro.foot[0]
     cop = np.where(np.isfinite(trial.cop), trial.cop * 1e-3, limb.heel + 0.5 * Lf)
@@ -359,7 +376,7 @@ def analyse_gait(mech: Mechanism, trial: GaitTrial, anthro: Anthropometry | None
     contact = contact_loads(mech.params, st, cartilage, foundation)
     flags = [f"t = {t[k]:.3f} s: {'; '.join(st.flags[k])}" for k in range(n) if st.flags[k]]
     return GaitResult(trial=trial, knee_force=F, knee_moment=M, statics=st, contact=contact, poses=poses, tau=tau,
-                      tf=kin["tf"], pf=kin["pf"], flags=flags, seconds=time.perf_counter() - t0)
+                      tf=kin.tf, pf=kin.pf, flags=flags, seconds=time.perf_counter() - t0)
 
 
 def _quaternions(R):

@@ -51,11 +51,11 @@ def test_tibia_velocity_and_acceleration_agree_with_pinocchio_lie_group(voluntee
     ad = np.radians(90 * np.cos(3 * t))
     add = np.radians(-270 * np.sin(3 * t))
     kin = knee_kinematics(volunteer, al, ad, add)
-    M = [pin.SE3(T[:3, :3], T[:3, 3] * 1e-3) for T in kin["T"]]
+    M = [pin.SE3(T[:3, :3], T[:3, 3] * 1e-3) for T in kin.T]
     v_fd = pin.log6(M[0].inverse() * M[2]).vector / (2 * dt)
-    np.testing.assert_allclose(kin["v"][1], v_fd, rtol=1e-5, atol=1e-8)
-    a_fd = (kin["v"][2] - kin["v"][0]) / (2 * dt)
-    np.testing.assert_allclose(kin["a"][1], a_fd, rtol=1e-3, atol=1e-5)
+    np.testing.assert_allclose(kin.v[1], v_fd, rtol=1e-5, atol=1e-8)
+    a_fd = (kin.v[2] - kin.v[0]) / (2 * dt)
+    np.testing.assert_allclose(kin.a[1], a_fd, rtol=1e-3, atol=1e-5)
 
 
 def test_helical_patella_follows_the_mechanism(volunteer):

@@ -704,6 +704,20 @@ def quick_tf_sweep(params_vector, kinds, x_start, alphas, compile: bool | None =
 _PF_SCAN: dict = {}
 
 
+@dataclass(frozen=True)
+class PFSweep:
+    """:func:`quick_pf_sweep`'s result: TF and PF joint coordinates (n, 6) (rad, mm), whether every angle
+    solved on one branch, the states ``Z`` (n, 12) for :func:`pf_sensitivities`, and the TF unknowns (5,)
+    and patellar angle (rad) at the reference flexion."""
+
+    tf: np.ndarray
+    pf: np.ndarray
+    ok: bool
+    Z: np.ndarray
+    x_ref: np.ndarray
+    psi_ref: float
+
+
 def quick_pf_sweep(params_vector, kinds, x_ref_guess, psi_ref_guess, alphas, compile: bool | None = None,
                    max_step: float = math.radians(2.0)):
     """TF and PF motion of a parameter vector with a patella, without building a :class:`Mechanism`
@@ -721,8 +735,7 @@ def quick_pf_sweep(params_vector, kinds, x_ref_guess, psi_ref_guess, alphas, com
     p = np.asarray(params_vector, dtype=float)
     al = np.asarray(alphas, dtype=float)
     n = al.size
-    fail = {"tf": np.full((n, 6), np.nan), "pf": np.full((n, 6), np.nan), "ok": False, "Z": None,
-            "x_ref": None, "psi_ref": None}
+    fail = PFSweep(np.full((n, 6), np.nan), np.full((n, 6), np.nan), False, None, None, None)
     a_ref = float(p[PF_REFERENCE_FLEXION])
     b = compiled.backend(tuple(kinds), True, compile)
     f = b.tf_newton
@@ -760,9 +773,8 @@ def quick_pf_sweep(params_vector, kinds, x_ref_guess, psi_ref_guess, alphas, com
     x = states[:, closure.STATE_X]
     jump = detect_jumps(x[0], al[0], x, al)
     ok = bool(np.all(res < RESIDUAL_TOL) and not jump.any() and np.all(np.isfinite(diags[:, closure.DIAG_PF])))
-    Z = np.column_stack([states[:, :6], np.tile(np.r_[x_ref, psi], (n, 1))])
-    return {"tf": np.column_stack([al, x]), "pf": diags[:, closure.DIAG_PF].copy(), "ok": ok, "Z": Z, "x_ref": x_ref,
-            "psi_ref": psi}
+    Z = np.column_stack([states[:, : closure.STATE_PSI + 1], np.tile(np.r_[x_ref, psi], (n, 1))])
+    return PFSweep(np.column_stack([al, x]), diags[:, closure.DIAG_PF].copy(), ok, Z, x_ref, psi)
 
 
 def pf_sensitivities(params_vector, kinds, Z, alphas) -> Sensitivity:
