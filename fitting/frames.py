@@ -27,6 +27,7 @@ A frame is returned as its pose in image space, ``T_image_bone`` (4, 4): bone co
 from __future__ import annotations
 
 import numpy as np
+
 from knee.foundations.errors import KneeInputError
 
 FEMUR_LANDMARKS = ("LE", "ME", "PAL", "HIP")

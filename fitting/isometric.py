@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from knee.foundations.conventions import joint_to_pose
 from knee.foundations.errors import KneeInputError
 from knee.foundations.geometry import least_varying_pair

@@ -21,6 +21,8 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import differential_evolution, least_squares
+
 from knee.foundations.errors import KneeInputError
 from knee.models.mechanism.params import (
     LINK_FEMUR,
@@ -36,7 +38,6 @@ from knee.models.mechanism.solver import (
     quick_tf_sweep,
     tf_sensitivities,
 )
-from scipy.optimize import differential_evolution, least_squares
 
 REJECTED = 1e3  # residual (deg or mm) given to every component of a rejected candidate
 

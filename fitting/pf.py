@@ -22,6 +22,7 @@ import math
 import time
 
 import numpy as np
+
 from knee.fitting.optimize import (
     NOISE_SD,
     FitResult,

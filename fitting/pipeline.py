@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+
 from knee.fitting.frames import FIDUCIALS, FRAME_FUNCTIONS, check_consistent
 from knee.fitting.isometric import isometric_fibre
 from knee.fitting.optimize import Motion, fit_tf, noise_weights

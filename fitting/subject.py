@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+
 from knee.fitting.frames import FIDUCIALS, LANDMARKS
 from knee.foundations.errors import KneeInputError
 from knee.foundations.imaging import (

@@ -31,6 +31,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+
 from knee.fitting.frames import FIDUCIALS, LANDMARKS
 from knee.fitting.optimize import synthetic_motion
 from knee.foundations.conventions import (

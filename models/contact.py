@@ -31,10 +31,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from scipy.optimize import brentq
+
 from knee.foundations.errors import KneeInputError
 from knee.models.mechanism.solver import Mechanism
 from knee.models.statics import StaticsResult, solve_statics
-from scipy.optimize import brentq
 
 
 @dataclass(frozen=True)

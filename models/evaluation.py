@@ -21,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from knee.foundations.conventions import transform_points
 
 #: Radius (mm) of the ACL and PCL footprints around each attachment's nearest surface point.

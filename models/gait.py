@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
+
 from knee.foundations.conventions import joint_to_pose
 from knee.foundations.errors import AssemblyError, KneeInputError
 from knee.models.contact import CARTILAGE, Cartilage, contact_loads

@@ -27,6 +27,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import trimesh
+
 from knee.foundations.conventions import joint_to_pose
 from knee.foundations.errors import AssemblyError, KneeInputError
 from knee.foundations.surfaces import SurfaceQuery

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+
 from knee.foundations.conventions import joint_to_pose
 from knee.models.mechanism.params import MechanismParams
 

@@ -22,15 +22,16 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+from trimesh.sample import sample_surface
+
 from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
 from knee.foundations.errors import KneeInputError
 from knee.foundations.pointclouds import icp, voxel_downsample
 from knee.foundations.surfaces import SurfaceQuery
 from knee.models.mechanism.solver import Mechanism
 from knee.models.phantom import Phantom
-from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
-from trimesh.sample import sample_surface
 
 GOLDEN = (math.sqrt(5) - 1) / 2
 #: Voxel size (mm) the cloud is thinned to before registration.

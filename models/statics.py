@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from knee.foundations.conventions import joint_to_pose
 from knee.foundations.errors import KneeInputError
 from knee.models.mechanism.solver import Mechanism

@@ -29,6 +29,7 @@ import numpy as np
 def run_one(cfg: dict) -> dict:
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
+
     from knee.models.fem.scene import FemSettings, build_association_model, knee_angles
     from knee.models.mechanism import Mechanism
 

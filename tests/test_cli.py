@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from knee.app.cli import main
 from knee.foundations.motion_io import SWEEP_HEADER, read_sweep_csv
 from knee.models.mechanism import load_model

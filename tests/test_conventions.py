@@ -3,6 +3,7 @@
 import numpy as np
 import pinocchio as pin
 import pytest
+
 from knee.foundations import conventions as cv
 
 

@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+
 from knee.models.evaluation import (
     EPIPHYSIS_LENGTH_MM,
     FOOTPRINT_RADIUS_MM,

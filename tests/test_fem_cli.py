@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from knee.foundations.errors import KneeInputError
 
+from knee.foundations.errors import KneeInputError
 from tests.test_cli import assert_clean_error, run
 
 
@@ -122,20 +122,21 @@ def test_energy_blow_up_and_inverted_cells_stop_the_run(fem_model):
 
 
 def test_open_skin_is_repaired_or_refused():
-    from knee.models.fem.grid import build_grid, closed_skin
+    from knee.foundations.surfaces import closed_surface
+    from knee.models.fem.grid import build_grid
 
     box = trimesh.creation.box(extents=[60.0, 120.0, 60.0])
     holed = box.copy()
     holed.update_faces(np.arange(len(holed.faces)) != 0)  # one triangle missing
     assert not holed.is_watertight
-    fixed = closed_skin(holed)
+    fixed = closed_surface(holed)
     assert fixed.is_watertight and abs(fixed.volume - box.volume) < 1e-6 * box.volume
     g1, g2 = build_grid(box, 3, 30.0), build_grid(holed, 3, 30.0)
     np.testing.assert_allclose(g1.weights, g2.weights)
     # an open tube: both ends are closed by fans, giving the prism's volume
     tube = trimesh.creation.cylinder(radius=30.0, height=120.0, sections=16)
     tube.update_faces(np.abs(tube.face_normals[:, 2]) < 0.5)
-    closed = closed_skin(tube)
+    closed = closed_surface(tube)
     assert closed.is_watertight
     assert abs(closed.volume - 0.5 * 16 * 30.0 ** 2 * np.sin(2 * np.pi / 16) * 120.0) < 1e-6 * closed.volume
     # two holes touching at one vertex: the boundary is not a set of simple loops

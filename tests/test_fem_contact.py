@@ -3,6 +3,7 @@ against a brute-force nearest-neighbour computation, whatever the candidate list
 tangent's matrix against its matrix-free product; its pattern within the reserve."""
 
 import numpy as np
+
 from knee.models.fem.fields import MappedPenaltyContact
 from knee.models.fem.grid import SparseGrid
 from knee.models.fem.meshing import box_hexahedra

@@ -4,6 +4,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 import trimesh
+
 from knee.foundations.conventions import cardan_to_matrix
 from knee.foundations.errors import KneeInputError
 from knee.foundations.pointclouds import (

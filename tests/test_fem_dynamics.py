@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import scipy.sparse.linalg as spla
+
 from knee.foundations.conventions import cardan_to_matrix
 from knee.models.fem.assembly import PatternAssembler
 from knee.models.fem.fields import GridElasticity, MappedSprings
@@ -198,8 +199,9 @@ def test_the_amortised_refresh_threshold_is_measured_unless_given():
 def test_nearest_rotations_match_the_polar_factor():
     """The Newton polar iteration against the SVD's polar factor, for sums of neighbouring rotations (its
     use), general matrices and reflections (which go to the SVD): rotations with det +1 either way."""
-    from knee.models.fem.elements import nearest_rotations
     from scipy.spatial.transform import Rotation
+
+    from knee.models.fem.elements import nearest_rotations
 
     rng = np.random.default_rng(3)
     base = Rotation.random(400, random_state=4).as_matrix()
@@ -219,8 +221,9 @@ def test_node_rotations_turn_with_the_bones_and_the_tissue(knee_model):
     the femur's none, and the nodes carrying both bones the weighted mean of the two, a rotation about the
     same axis by phi, tan(phi) = w_t sin(theta) / (w_f + w_t cos(theta)) (w: the bones' embedding weights
     at the node)."""
-    from knee.foundations.geometry import rigid_register
     from scipy.spatial.transform import Rotation
+
+    from knee.foundations.geometry import rigid_register
 
     m = knee_model
     s = m.solver

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+
 from knee.foundations.conventions import cardan_to_matrix
 from knee.foundations.errors import KneeInputError
 from knee.models.fem.assembly import PatternAssembler

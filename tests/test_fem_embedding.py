@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import trimesh
+
 from knee.foundations.surfaces import SurfaceQuery
 from knee.models.fem.bones import tetrahedralize, tetrahedralize_to_count
 from knee.models.fem.grid import BOUNDARY, INSIDE, build_grid

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import scipy.sparse as sp
+
 from knee.models.fem.factor import SparseFactor, cholmod_available
 
 

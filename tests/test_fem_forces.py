@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+
 from knee.models.fem.forces import BoneForces, SurfaceForces
 
 

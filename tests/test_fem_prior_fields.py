@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+
 from knee.models.fem.fields import MappedSprings, affine_point_map
 from knee.models.fem.scene import build_association_model
 
@@ -130,13 +131,14 @@ def test_prior_floor_vanishes_for_an_exact_prior_and_not_for_a_perturbed_one(mod
     assert all(r.tibia_footprints_mm > 1.0 for r in off)
     # the axial part is a part: no more than the whole, and the twist it reports reproduces its error on
     # the footprints, rotated independently about the tibia's y axis
+    from scipy.spatial.transform import Rotation
+
     from knee.app.experiments.cases import model_targets
     from knee.foundations.conventions import (
         invert_poses,
         joint_to_pose,
         transform_points,
     )
-    from scipy.spatial.transform import Rotation
 
     tg = model_targets(model, wrong)
     fp = transform_points(invert_poses(joint_to_pose(wrong.solve(0.0)[0])), tg.tibia)[tg.tibia_footprints]

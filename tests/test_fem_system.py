@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+
 from knee.models.fem.factor import Refactorizer, symmetric_from_lower
 from knee.models.fem.system import SystemAssembler
 

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+
 from knee.fitting.isometric import isometric_fibre
 from knee.fitting.optimize import synthetic_motion
 from knee.foundations.errors import KneeInputError

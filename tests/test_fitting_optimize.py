@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+
 from knee.fitting.optimize import (
     NOISE_SD,
     REJECTED,

@@ -9,6 +9,7 @@ import sys
 import numpy as np
 import pytest
 import trimesh
+
 from knee.app.reports.fit import check_output_folder, write_outputs
 from knee.fitting.frames import SideError, femur_frame, patella_frame, tibia_frame
 from knee.fitting.optimize import Motion, fit_tf, noise_weights, synthetic_motion

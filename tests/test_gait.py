@@ -6,6 +6,7 @@ import sys
 import numpy as np
 import pinocchio as pin
 import pytest
+
 from knee.foundations.conventions import invert_poses, joint_to_pose
 from knee.foundations.errors import AssemblyError, KneeInputError
 from knee.models.gait import (

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+
 from knee.foundations.conventions import cardan_to_matrix
 from knee.foundations.errors import KneeInputError
 from knee.foundations.geometry import (

@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+
 from knee.foundations.conventions import joint_to_pose
 from knee.foundations.errors import AssemblyError
 from knee.models.mechanism import Mechanism, compiled, load_model

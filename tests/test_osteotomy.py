@@ -6,6 +6,7 @@ import sys
 
 import numpy as np
 import pytest
+
 from knee.foundations.errors import AssemblyError, KneeInputError
 from knee.models.mechanism.params import load_model
 from knee.models.osteotomy import (

@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+
 from knee.models.mechanism.params import (
     N_PARAMS,
     ModelFileError,

@@ -3,6 +3,7 @@
 import numpy as np
 import open3d as o3d
 import pytest
+
 from knee.foundations.conventions import joint_to_pose
 from knee.models.phantom import build_phantom, posed_bones
 

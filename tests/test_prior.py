@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+
 from knee.app.experiments.cases import phantom_targets
 from knee.foundations.conventions import joint_to_pose
 from knee.foundations.errors import KneeInputError
@@ -141,8 +142,9 @@ def test_a_view_without_the_shank_is_flagged(volunteer, scene):
 def _shank_points(volunteer, ph, alpha, D, n=4000, seed=0, noise=0.3):
     """Points spread over the shank's skin (more than 40 mm below the knee) with the tibia at
     ``T_prior @ D``, in the femur frame."""
-    from knee.foundations.conventions import transform_points
     from trimesh.sample import sample_surface
+
+    from knee.foundations.conventions import transform_points
 
     T = joint_to_pose(volunteer.motion_at(np.array([alpha]))[0][0]) @ D
     shank = ph.skin_parts(np.eye(4))[1][0]
@@ -179,8 +181,9 @@ def test_the_tibia_correction_recovers_what_the_shank_shows(volunteer):
 
 
 def test_no_tibia_correction_without_shank_points(volunteer):
-    from knee.models.prior import correct_tibia
     from trimesh.sample import sample_surface
+
+    from knee.models.prior import correct_tibia
 
     ph = build_phantom(volunteer.params)
     thigh, _ = sample_surface(ph.skin_parts(np.eye(4))[0][0], 3000, seed=0)

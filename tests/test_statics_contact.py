@@ -4,6 +4,8 @@ import math
 
 import numpy as np
 import pytest
+from scipy.integrate import quad
+
 from knee.foundations.conventions import joint_to_pose
 from knee.foundations.errors import AssemblyError, KneeInputError
 from knee.models.contact import (
@@ -20,7 +22,6 @@ from knee.models.contact import (
 from knee.models.contact import _tibial_depth as _depth
 from knee.models.mechanism import Mechanism
 from knee.models.statics import member_lines, solve_statics
-from scipy.integrate import quad
 
 
 def test_large_sweep_steps_stay_on_the_branch(volunteer):

@@ -9,9 +9,10 @@ tetrahedra kept whose centroid lies inside the surface and whose shape is not a 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import Delaunay, cKDTree
+
 from knee.foundations.errors import KneeInputError
 from knee.foundations.surfaces import SurfaceQuery
-from scipy.spatial import Delaunay, cKDTree
 
 
 def _spaced_subsample(points, spacing, seed=0):

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
+
 from knee.foundations.errors import KneeInputError
 
 

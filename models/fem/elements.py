@@ -24,6 +24,7 @@ Hexahedron node order (local coordinates in {-1, 1}^3):
 from __future__ import annotations
 
 import numpy as np
+
 from knee.foundations.errors import KneeInputError
 from knee.models.fem.material import elasticity_matrix
 

@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
 from knee.foundations.errors import KneeInputError
 from knee.models.fem.assembly import PatternAssembler
 from knee.models.fem.elements import CorotationalElements
 from knee.models.fem.mapping import TrilinearMapping
-from scipy.spatial import cKDTree
 
 
 class _Scatter:

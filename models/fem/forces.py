@@ -19,9 +19,10 @@ provide their stiffness (k J^T J over the active points) to the implicit solve.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
+
 from knee.foundations.geometry import principal_axes as _principal_axes
 from knee.models.fem.mapping import TrilinearMapping
-from scipy.spatial import cKDTree
 
 PAPER_BONE_FORCES = (9000.0, 23000.0, 3000.0, 6000.0)
 

@@ -17,9 +17,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import trimesh
+
 from knee.foundations.errors import KneeInputError
-from knee.foundations.surfaces import SurfaceQuery
+from knee.foundations.surfaces import SurfaceQuery, closed_surface
 
 INSIDE, BOUNDARY = 0, 1  # a cell's status (cells outside the skin are dropped)
 
@@ -99,64 +99,13 @@ def graded_axis(lo: float, hi: float, fine: float, coarse: float, centre: float,
     return np.array(sorted(set([c] + up + down)))
 
 
-def _fill_holes(vertices: np.ndarray, faces: np.ndarray):
-    """Close each boundary loop of a triangle mesh with a fan around the loop's centroid (new faces wound
-    like their neighbours). Returns (vertices, faces), or None when the boundary is not a set of simple
-    loops (a vertex with more than one outgoing boundary edge)."""
-    e = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)  # directed edges as wound in the faces
-    key = np.sort(e, axis=1)
-    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    b = e[cnt[inv.ravel()] == 1]  # boundary edges, a -> b
-    if len(b) == 0:
-        return vertices, faces
-    nxt = {}
-    for a, c in b:  # one pass over the boundary edges (a repair, not a hot path)
-        if a in nxt:
-            return None
-        nxt[int(a)] = int(c)
-    verts, new_faces, seen = [vertices], [faces], set()
-    n = len(vertices)
-    for start in nxt:
-        if start in seen:
-            continue
-        loop, v = [], start
-        while v not in seen:
-            seen.add(v)
-            loop.append(v)
-            v = nxt.get(v)
-            if v is None:
-                return None
-        loop = np.array(loop)
-        verts.append(vertices[loop].mean(axis=0)[None])
-        new_faces.append(np.column_stack([np.roll(loop, -1), loop, np.full(len(loop), n)]))
-        n += 1
-    return np.vstack(verts), np.vstack(new_faces)
-
-
-def closed_skin(skin):
-    """The skin mesh, closed: returned as is when watertight, otherwise a copy with its holes filled;
-    a skin that stays open raises (inside and outside are undefined for it)."""
-    if skin.is_watertight:
-        return skin
-    merged = skin.copy()
-    merged.merge_vertices()
-    filled = _fill_holes(np.asarray(merged.vertices, float), np.asarray(merged.faces, np.int64))
-    fixed = None if filled is None else trimesh.Trimesh(*filled, process=False)
-    if fixed is None or not fixed.is_watertight:
-        e = np.sort(np.asarray(merged.faces)[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-        _, cnt = np.unique(e, axis=0, return_counts=True)
-        raise KneeInputError(f"the skin mesh is not closed ({int((cnt == 1).sum())} open edges) and its holes "
-                             f"could not be filled; the grid needs a closed skin surface")
-    return fixed
-
-
 def build_grid(skin, n_across: int = 7, element_size: float | None = 12.0, n_along: int | None = None,
                margin: float = 1.0, joint_y: float | None = None, joint_size: float = 3.0,
                joint_half_width: float = 15.0, growth: float = 1.3) -> SparseGrid:
     """Build the sparse grid around a closed skin mesh (trimesh), see the module docstring."""
     if n_across < 1:
         raise KneeInputError(f"n_across must be at least 1, got {n_across}")
-    skin = closed_skin(skin)
+    skin = closed_surface(skin, "skin")
     lo = np.asarray(skin.bounds[0], float) - margin
     hi = np.asarray(skin.bounds[1], float) + margin
     ax = np.linspace(lo[0], hi[0], n_across + 1)

@@ -31,6 +31,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+
 from knee.models.fem.factor import Refactorizer
 from knee.models.fem.system import SystemAssembler
 

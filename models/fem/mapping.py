@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+
 from knee.models.fem.elements import HEX_CORNERS
 from knee.models.fem.grid import SparseGrid
 

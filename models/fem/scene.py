@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 import trimesh
+
 from knee.foundations.conventions import (
     joint_to_pose,
     matrix_to_cardan,

@@ -21,6 +21,7 @@ raw components are well defined.
 from __future__ import annotations
 
 import casadi as ca
+
 from knee.models.mechanism.params import (
     LINK_FEMUR,
     LINK_LENGTH,

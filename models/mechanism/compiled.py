@@ -31,6 +31,7 @@ from pathlib import Path
 
 import casadi as ca
 import numpy as np
+
 from knee.models.mechanism import closure
 
 log = logging.getLogger(__name__)

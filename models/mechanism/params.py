@@ -30,6 +30,7 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
+
 from knee.foundations.errors import ModelFileError, UnknownModelError
 
 FORMAT_NAME = "knee-mechanism"

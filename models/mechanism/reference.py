@@ -9,9 +9,10 @@ benchmark uses :func:`solve_sweep_least_squares` as its baseline.
 from __future__ import annotations
 
 import numpy as np
+from scipy.optimize import least_squares
+
 from knee.foundations.conventions import cardan_to_matrix, matrix_to_cardan
 from knee.models.mechanism.params import MechanismParams
-from scipy.optimize import least_squares
 
 
 def _axis_angle(n, a):

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import casadi as ca
 import numpy as np
+
 from knee.foundations.conventions import joint_to_pose
 from knee.foundations.errors import AssemblyError, KneeInputError
 from knee.models.mechanism import closure, compiled

@@ -10,8 +10,9 @@ the ACL/PCL footprints.
 
 import math
 
-import knee
 import numpy as np
+
+import knee
 from knee.app.experiments.cases import case_points, evaluate
 from knee.fitting.optimize import perturb_endpoints
 from knee.models.fem.depth import DepthNoise, default_camera

@@ -4,8 +4,9 @@ the parameters.
     .venv/bin/python tests/examples/mechanism_sweep.py
 """
 
-import knee
 import numpy as np
+
+import knee
 from knee.models.mechanism.params import parameter_names
 
 

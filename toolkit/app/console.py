@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
 from knee.foundations.errors import EXIT_BAD_INPUT, KneeInputError
 
 

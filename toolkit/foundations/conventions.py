@@ -34,6 +34,7 @@ True
 from __future__ import annotations
 
 import numpy as np
+
 from knee.foundations.errors import KneeInputError
 
 #: Names of the six joint coordinates, in storage order.

@@ -14,6 +14,7 @@ True
 from __future__ import annotations
 
 import numpy as np
+
 from knee.foundations.errors import KneeInputError
 
 

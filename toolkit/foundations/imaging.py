@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+
 from knee.foundations.conventions import joint_coordinates, joint_to_pose
 from knee.foundations.errors import KneeInputError
 

@@ -12,6 +12,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+
 from knee.foundations.errors import KneeInputError
 
 _COORDS = ["flexion_deg", "adduction_deg", "internal_rotation_deg", "anterior_mm", "proximal_mm", "lateral_mm"]

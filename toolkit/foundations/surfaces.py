@@ -1,12 +1,14 @@
-"""Signed distances and occupancy against closed triangle meshes (open3d ``RaycastingScene``).
-
-Negative inside, positive outside (mm).
+"""Closed triangle meshes: signed distances and occupancy (open3d ``RaycastingScene``; negative inside,
+positive outside, mm), closing small holes, and clipping to a slab (manifold3d booleans).
 """
 
 from __future__ import annotations
 
 import numpy as np
 import open3d as o3d
+import trimesh
+
+from knee.foundations.errors import KneeInputError
 
 
 class SurfaceQuery:
@@ -42,3 +44,77 @@ class SurfaceQuery:
         p = o3d.core.Tensor(np.asarray(points, np.float32).reshape(-1, 3))
         r = self.scene.compute_closest_points(p)
         return r["points"].numpy().astype(float), r["primitive_normals"].numpy().astype(float)
+
+
+def _fill_holes(vertices: np.ndarray, faces: np.ndarray):
+    """Close each boundary loop of a triangle mesh with a fan around the loop's centroid (new faces wound
+    like their neighbours). Returns (vertices, faces), or None when the boundary is not a set of simple
+    loops (a vertex with more than one outgoing boundary edge)."""
+    e = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)  # directed edges as wound in the faces
+    key = np.sort(e, axis=1)
+    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    b = e[cnt[inv.ravel()] == 1]  # boundary edges, a -> b
+    if len(b) == 0:
+        return vertices, faces
+    nxt = {}
+    for a, c in b:  # one pass over the boundary edges (a repair, not a hot path)
+        if a in nxt:
+            return None
+        nxt[int(a)] = int(c)
+    verts, new_faces, seen = [vertices], [faces], set()
+    n = len(vertices)
+    for start in nxt:
+        if start in seen:
+            continue
+        loop, v = [], start
+        while v not in seen:
+            seen.add(v)
+            loop.append(v)
+            v = nxt.get(v)
+            if v is None:
+                return None
+        loop = np.array(loop)
+        verts.append(vertices[loop].mean(axis=0)[None])
+        new_faces.append(np.column_stack([np.roll(loop, -1), loop, np.full(len(loop), n)]))
+        n += 1
+    return np.vstack(verts), np.vstack(new_faces)
+
+
+def closed_surface(mesh: trimesh.Trimesh, what: str = "surface") -> trimesh.Trimesh:
+    """The mesh, closed: returned as is when watertight, otherwise a copy with its holes filled (a fan
+    per boundary loop); a mesh that stays open raises :class:`KneeInputError` naming ``what`` and counting
+    its open edges (inside and outside are undefined for it)."""
+    if mesh.is_watertight:
+        return mesh
+    merged = mesh.copy()
+    merged.merge_vertices()
+    filled = _fill_holes(np.asarray(merged.vertices, float), np.asarray(merged.faces, np.int64))
+    fixed = None if filled is None else trimesh.Trimesh(*filled, process=False)
+    if fixed is None or not fixed.is_watertight:
+        e = np.sort(np.asarray(merged.faces)[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        _, cnt = np.unique(e, axis=0, return_counts=True)
+        raise KneeInputError(f"the {what} mesh is not closed ({int((cnt == 1).sum())} open edges) and its holes "
+                             f"could not be filled; a closed surface is needed")
+    return fixed
+
+
+def clip_to_slab(mesh: trimesh.Trimesh, origin, axis, below: float, above: float) -> trimesh.Trimesh:
+    """The part of a closed mesh between two planes normal to ``axis`` (3,), at ``origin - below * axis``
+    and ``origin + above * axis`` (mm), closed by the planes' cross-sections (a boolean intersection with a
+    box, exact and watertight). A mesh that lies wholly inside the slab is returned unchanged."""
+    a = np.asarray(axis, float)
+    a = a / np.linalg.norm(a)
+    o = np.asarray(origin, float)
+    h = (mesh.vertices - o) @ a
+    if h.min() >= -below and h.max() <= above:
+        return mesh
+    # a box as long as the slab and wider than the mesh, turned so that its z axis is ``axis``
+    size = 4.0 * float(np.linalg.norm(mesh.extents)) + 1.0
+    T = np.eye(4)
+    T[:3, :3] = trimesh.geometry.align_vectors([0.0, 0.0, 1.0], a)[:3, :3]
+    T[:3, 3] = o + 0.5 * (above - below) * a
+    box = trimesh.creation.box(extents=[size, size, below + above], transform=T)
+    out = trimesh.boolean.intersection([closed_surface(mesh), box], engine="manifold")
+    if out.is_empty or not out.is_watertight:
+        raise KneeInputError("clipping the surface to the region around the joint left nothing closed")
+    return out

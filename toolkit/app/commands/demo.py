@@ -10,6 +10,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
+
 from knee.app.commands.sweep import run_sweep, summary
 from knee.app.console import error, say
 from knee.app.demo import run_demo_comparison

@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from knee.app.console import ProgressBar, check_new, error, numbers, say
 from knee.app.experiments.cases import case_points, case_truth, run_standard_case
 from knee.app.views.fem import FemRecorder

@@ -6,6 +6,7 @@ import csv
 from pathlib import Path
 
 import numpy as np
+
 from knee.app.console import check_new, out_dir
 from knee.app.views.clinical import gait_blueprint, log_gait, plot_gait
 from knee.foundations import recording

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
 from knee.app.console import numbers, out_dir
 from knee.app.reports.osteotomy import plot, report_markdown, write_recording
 from knee.foundations.errors import KneeInputError

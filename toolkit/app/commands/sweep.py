@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from knee.app.console import check_new, error
 from knee.app.views.sweep import log_sweep, sweep_blueprint
 from knee.foundations import recording

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
+from scipy.spatial.transform import Rotation
+
 from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
 from knee.foundations.errors import KneeError
 from knee.foundations.pointclouds import backproject
@@ -38,7 +40,6 @@ from knee.models.fem.scene import AssociationModel, FemSettings, build_associati
 from knee.models.mechanism.solver import Mechanism
 from knee.models.phantom import Phantom, build_phantom
 from knee.models.prior import TibiaCorrection
-from scipy.spatial.transform import Rotation
 
 
 def truth_phantom(mech: Mechanism, settings: FemSettings | None = None) -> Phantom:

@@ -21,6 +21,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import rerun as rr  # noqa: E402
 import rerun.blueprint as rrb  # noqa: E402
+
 from knee.app.experiments.cases import CompareRow, FloorRow, MethodResult  # noqa: E402
 from knee.foundations import recording as R  # noqa: E402
 from knee.foundations.conventions import joint_to_pose  # noqa: E402

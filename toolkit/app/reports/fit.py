@@ -16,6 +16,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import rerun as rr  # noqa: E402
 import rerun.blueprint as rrb  # noqa: E402
+
 from knee.fitting.pipeline import (  # noqa: E402
     TF_NAMES,
     UNITS,

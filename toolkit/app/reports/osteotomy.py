@@ -13,6 +13,7 @@ import numpy as np  # noqa: E402
 import rerun as rr  # noqa: E402
 import rerun.blueprint as rrb  # noqa: E402
 import trimesh  # noqa: E402
+
 from knee.foundations import recording as R  # noqa: E402
 from knee.foundations.conventions import joint_to_pose  # noqa: E402
 from knee.models.osteotomy import (  # noqa: E402

@@ -12,6 +12,7 @@ import rerun as rr  # noqa: E402
 import rerun.blueprint as rrb  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 import trimesh  # noqa: E402
+
 from knee.foundations import recording as R  # noqa: E402
 from knee.foundations.conventions import joint_to_pose  # noqa: E402
 from knee.models.contact import ContactAlongFlexion  # noqa: E402

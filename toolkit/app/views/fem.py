@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
+
 from knee.app.experiments.cases import CaseResult, CaseTruth
 from knee.foundations import recording as R
 from knee.models.fem.mapping import TrilinearMapping

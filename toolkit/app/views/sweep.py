@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
+
 from knee.foundations import recording as rec_
 from knee.foundations.conventions import JOINT_COORDINATES, transform_points
 from knee.models.mechanism.solver import Mechanism, SweepResult
