@@ -1,22 +1,26 @@
 """``knee demo``: the whole pipeline on the bundled volunteer: the sweep and its recording, then the
 association FEM with the kinematic prior against the paper's method and the mechanism alone on a
-virtual depth map (:mod:`knee.app.demo`)."""
+virtual depth map (:mod:`knee.app.demo`).
+
+This module imports nothing heavy: the FEM's worker processes start first
+(:mod:`knee.app.demo_workers`), then the sweep's and the comparison's modules are imported here while the
+workers start up (``importlib``, at those points on purpose: the overlap is the demo's wall time).
+"""
 
 from __future__ import annotations
 
+import importlib
 import math
 import sys
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
-from knee.app.commands.sweep import run_sweep, summary
 from knee.app.console import error, say
-from knee.app.demo import run_demo_comparison
-from knee.app.reports.compare import METHOD_LABELS
+from knee.app.demo_workers import call, start_workers
 from knee.foundations.errors import EXIT_NUMERICAL, KneeInputError
-from knee.models.mechanism import Mechanism
 
 
 def new_folder(base: Path) -> Path:
@@ -33,22 +37,35 @@ def run(args) -> int:
     if not (math.isfinite(args.flexion) and 15.0 <= args.flexion <= 110.0):
         raise KneeInputError(f"--flexion must be 15-110 deg (within the prior's range), got {args.flexion}")
     out_dir = new_folder(Path(args.out))
-    fem = None
+    fem = pool = None
     if not args.kinematics_only:
         # the FEM comparison (two worker processes) starts first and runs while the sweep is solved and
-        # recorded: the workers' start-up overlaps it
+        # recorded: the workers' start-up overlaps it; a thread collects their results
+        t0 = time.perf_counter()
+        pool, futures = start_workers(args.flexion, 3, 2.0)
         say(f"knee demo: virtual depth map at {args.flexion:g} deg; the association FEM with the kinematic prior "
             f"and with the paper's forcing, two processes (started) ...")
         runner = ThreadPoolExecutor(max_workers=1)
-        fem = runner.submit(run_demo_comparison, out_dir, args.flexion, log=say)
+        fem = runner.submit(call, "knee.app.demo", "collect_demo_comparison", out_dir, futures, args.flexion, 3, 2.0,
+                            t0, say)
         runner.shutdown(wait=False)
-    mech = Mechanism.from_name("volunteer")
+    try:
+        return _sweep_and_report(args, out_dir, fem)
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=fem is None or fem.done(), cancel_futures=True)
+
+
+def _sweep_and_report(args, out_dir: Path, fem) -> int:
+    # imported now, after the workers started (see the module docstring)
+    sweep = importlib.import_module("knee.app.commands.sweep")
+    mech = importlib.import_module("knee.models.mechanism").Mechanism.from_name("volunteer")
     hi = math.floor(math.degrees(mech.assembly_range[1]))
     a = np.arange(0.0, hi + 1.0, 1.0)
     csv_path, rrd_path = out_dir / "volunteer-sweep.csv", out_dir / "volunteer-sweep.rrd"
     say(f"knee demo: sweeping the bundled 'volunteer' knee over 0..{hi} deg ...")
-    mech, res, dt = run_sweep("volunteer", a, csv_path, rrd_path)
-    print(summary(mech, res, dt))
+    mech, res, dt = sweep.run_sweep("volunteer", a, csv_path, rrd_path)
+    print(sweep.summary(mech, res, dt))
     i = np.searchsorted(res.flexion, math.radians(90.0))
     if i < res.flexion.size:
         tf, pf = res.tf[i], res.pf[i]
@@ -65,11 +82,12 @@ def run(args) -> int:
     if fem is None:
         return 0
     out = fem.result()
+    labels = importlib.import_module("knee.app.reports.compare").METHOD_LABELS
     print(f"\nFEM at {args.flexion:g} deg flexion (truth: volunteer; prior: volunteer with TF endpoints moved 1-2 mm; "
           f"oblique camera, depth noise):")
     print(f"{'method':44s} {'flexion':>8s} {'footprints':>11s} {'epiphysis':>10s} {'steps':>6s} {'wall (s)':>9s}")
     for r in out.rows:
-        print(f"{METHOD_LABELS[r.method]:44s} {r.flexion_estimated_deg:7.1f}° {r.footprints_mm:8.2f} mm "
+        print(f"{labels[r.method]:44s} {r.flexion_estimated_deg:7.1f}° {r.footprints_mm:8.2f} mm "
               f"{r.epiphysis_mm:7.2f} mm {r.steps:6d} {r.wall_seconds:9.1f}")
         if math.isfinite(r.tibia_correction_deg):
             print(f"  the tibia's pose corrected from the shank's depth points: {r.tibia_correction_deg:.1f} deg, "
