@@ -153,7 +153,11 @@ def _read_options(root: Path) -> dict:
 
 
 def load_subject(root) -> Subject:
-    """Read and check a subject folder (see the module docstring). Nothing in it is written."""
+    """Read and check a subject folder (see the module docstring). Nothing in it is written.
+
+    Returns a :class:`Subject`: surfaces as ``trimesh.Trimesh`` in LPS of their scan (mm; a left knee
+    mirrored into a right one), landmarks, the measured motion (rad, mm). Bad or missing files raise
+    :class:`KneeInputError` naming them."""
     root = Path(root)
     if not root.is_dir():
         raise KneeInputError(f"subject folder {root} not found")

@@ -92,7 +92,10 @@ def _ball_grid(centre, radius, spacing=1.0):
 
 def make_subject(out_dir, model: str = "volunteer", seed: int = 0, frames: int = 60, flexion_to: float = 120.0,
                  noise: bool = True) -> Path:
-    """Write a synthetic subject folder (see the module docstring). ``out_dir`` must not exist or be empty."""
+    """Write a synthetic subject folder from a bundled parameter set (see the module docstring) and return
+    its path. ``out_dir`` must not exist or be empty; ``frames`` of measured motion from 0 to
+    ``flexion_to`` deg, with fluoroscopy-like noise unless ``noise`` is False; surfaces in mm (LPS STL for
+    the CT, RAS PLY for the MRI)."""
     out = Path(out_dir)
     if out.exists() and any(out.iterdir()):
         raise KneeInputError(f"{out} exists and is not empty; not overwritten")

@@ -94,7 +94,24 @@ class HertzResult:
 
 
 def hertz(force, r_femur, r_tibia, surface, femur: Cartilage = CARTILAGE, tibia: Cartilage = CARTILAGE) -> HertzResult:
-    """Hertz contact for compressive forces ``force`` (N, >= 0; (n,) or scalar); vectorised."""
+    """Hertz contact of a femoral condyle on a tibial facet, vectorised over loads.
+
+    Parameters
+    ----------
+    force : (n,) or scalar float
+        Compressive contact force, N (negative values count as 0).
+    r_femur, r_tibia : float
+        Condyle and facet sphere radii, mm (``r_tibia`` ignored on a plane).
+    surface : str
+        The facet: ``"convex"``, ``"concave"`` or ``"plane"``.
+    femur, tibia : Cartilage
+        Each surface's cartilage (MPa, mm).
+
+    Returns
+    -------
+    HertzResult: contact radius and approach (mm), area (mm²), mean and peak pressure (MPa), each like
+    ``force``.
+    """
     F = np.maximum(np.asarray(force, float), 0.0)
     Rs = effective_radius(r_femur, r_tibia, surface)
     Es = effective_modulus(femur, tibia)

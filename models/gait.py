@@ -312,7 +312,14 @@ def _rates(t, x):
 def analyse_gait(mech: Mechanism, trial: GaitTrial, anthro: Anthropometry | None = None,
                  cartilage: Cartilage = CARTILAGE, ankle_in_tibia=None, foundation: bool = True,
                  hip_in_femur=None) -> GaitResult:
-    """Kinematics, inverse dynamics, statics and contact pressures for every frame of ``trial``."""
+    """Kinematics, inverse dynamics, statics and contact pressures for every frame of ``trial``.
+
+    ``trial``: the joint angles (rad), ground reaction force (N, world frame: x anterior, y up, z lateral)
+    and centre of pressure (mm along the foot) over time (s); ``anthro``: body mass (kg) and height (m);
+    ``ankle_in_tibia``, ``hip_in_femur`` (3,) mm: joint centres in the bone frames, when measured.
+    Returns a :class:`GaitResult` (the knee load on the tibia in the tibia frame, N and N*mm, per frame;
+    member forces, N; contact pressures, MPa). Raises :class:`AssemblyError` when the knee's flexion leaves
+    the mechanism's assembly range."""
 
     t0 = time.perf_counter()
     anthro = anthro or Anthropometry()

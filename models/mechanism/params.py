@@ -411,7 +411,7 @@ def load_toml(path) -> MechanismParams:
 
 
 def bundled_models() -> dict[str, str]:
-    """Bundled parameter sets: name -> one-line description."""
+    """The bundled parameter sets, {name: one-line description}; each loads with :func:`load_model`."""
     out = {}
     for f in sorted(resources.files("knee.models.mechanism").joinpath("data").iterdir()):
         if f.name.endswith(".toml"):

@@ -43,7 +43,9 @@ def backproject(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray | None
 
 
 def load_depth_image(path, K, T_world_cam=None, depth_scale: float = 1.0) -> np.ndarray:
-    """Points from a depth image file (16-bit PNG or a .npy array) with intrinsics ``K``."""
+    """Points (P, 3) from a depth image file (16-bit PNG or a .npy array) with intrinsics ``K`` (3, 3)
+    (pixels): in mm after ``depth_scale`` (image units to mm), in the camera's frame, or in the world
+    with the camera pose ``T_world_cam`` (4, 4)."""
     path = Path(path)
     if not path.is_file():
         raise KneeInputError(f"{path}: no such depth image")

@@ -23,12 +23,14 @@ BONE_COLOURS = {"femur": (230, 220, 200), "tibia": (215, 205, 185), "patella": (
 
 
 def new_recording(app_id: str = APP_ID) -> rr.RecordingStream:
-    """A fresh recording stream (not the global one), to be saved with :func:`save`."""
+    """A fresh Rerun recording stream, application id ``knee`` (not the global one), to be saved with
+    :func:`save` (``knee.save_recording``)."""
     return rr.RecordingStream(app_id)
 
 
 def save(rec: rr.RecordingStream, path, blueprint: rrb.Blueprint | None = None) -> Path:
-    """Write the recording (blueprint first) to ``path``; returns the path."""
+    """Write the recording to the file ``path`` (``.rrd``, opened with ``rerun FILE``), the blueprint first
+    (the default layout of its views); returns the path. Data logged afterwards goes to the file."""
     path = Path(path)
     rec.save(str(path), default_blueprint=blueprint)
     return path
