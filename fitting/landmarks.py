@@ -31,10 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 from knee.foundations.errors import KneeInputError
-from knee.foundations.geometry import fit_sphere
-
-#: A bone reaches the far joint (hip, ankle) when it is at least this many times its width long.
-LONG_BONE = 3.0
+from knee.foundations.geometry import LONG_BONE, end_width, fit_sphere
 
 
 def _axes(up, anterior):
@@ -48,23 +45,12 @@ def _axes(up, anterior):
     return u, a, np.cross(a, u)  # proximal, anterior, lateral (right knee)
 
 
-def _width_at_end(v, h, lat, end: str) -> float:
-    """The medio-lateral width of the bone at its joint end (``"low"`` or ``"high"``): the extent along
-    ``lat`` of the vertices within a tenth of the length from the end (at most a length equal to the whole
-    bone's width, for short pieces)."""
-    span = h.max() - h.min()
-    w_all = np.ptp(v @ lat)
-    depth = min(0.1 * span, w_all) if span > LONG_BONE * w_all else span
-    sel = h <= h.min() + depth if end == "low" else h >= h.max() - depth
-    return float(np.ptp(v[sel] @ lat))
-
-
 def femur_landmarks(vertices, up, anterior) -> dict:
     """LE, ME, PAL and HIP (None when the femur does not reach the hip) of a right femur's surface."""
     v = np.asarray(vertices, float)
     u, a, lat = _axes(up, anterior)
     h = v @ u
-    W = _width_at_end(v, h, lat, "low")
+    W = end_width(v, h, lat, "low")
     distal = v[h < h.min() + 0.75 * W]
     s = distal @ lat
     le, me = distal[s > s.max() - 0.02 * W].mean(axis=0), distal[s < s.min() + 0.02 * W].mean(axis=0)
@@ -90,7 +76,7 @@ def tibia_landmarks(vertices, up, anterior, fibula=None) -> dict:
     v = np.asarray(vertices, float)
     u, a, lat = _axes(up, anterior)
     h = v @ u
-    W = _width_at_end(v, h, lat, "high")
+    W = end_width(v, h, lat, "high")
     top = v[h > h.max() - 0.25 * W]
     s = top @ lat
     mid = 0.5 * (s.max() + s.min())

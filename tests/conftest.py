@@ -1,4 +1,5 @@
 import os
+from pathlib import Path
 
 # Rerun switches its (viewer-only) analytics off on CI; the tests never start a viewer, and any
 # `rerun` subprocess they run inherits this.
@@ -19,3 +20,22 @@ def generic():
     from knee.models.mechanism import Mechanism
 
     return Mechanism.from_name("generic-sancisi2017")
+
+
+#: The real, public knee data (../shared/data, README "Real data"): used where present, never copied.
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def shared_data():
+    """The folder of real knee data, or a skip naming what is missing (a user's machine has none)."""
+    if not (SHARED_DATA / "visible-human-male").is_dir():
+        pytest.skip(f"real knee data not found at {SHARED_DATA} (see README, 'Real data')")
+    return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def visible_human(shared_data):
+    from knee.fitting.reference_data import visible_human_knee
+
+    return visible_human_knee(shared_data)

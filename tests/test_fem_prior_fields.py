@@ -114,7 +114,9 @@ def test_wide_attachment_is_exact_for_affine_motion_and_damps_local_deformation(
     x[cols, 1] += 0.1 * np.sign(np.arange(len(cols)) % 2 - 0.5)
     move_wide = np.linalg.norm(wide.apply(x) - p)
     move_near = np.linalg.norm(near.apply(x) - p)
-    assert move_wide < 0.5 * move_near, (move_wide, move_near)
+    # (measured: 0.48 of the near attachment's move with the phantom's grid graded about its contact
+    # spheres' level, 0.52 with the grid graded about the joint line found from the bones)
+    assert move_wide < 0.6 * move_near, (move_wide, move_near)
 
 
 def test_prior_floor_vanishes_for_an_exact_prior_and_not_for_a_perturbed_one(model, volunteer):
@@ -136,12 +138,11 @@ def test_prior_floor_vanishes_for_an_exact_prior_and_not_for_a_perturbed_one(mod
     from knee.app.experiments.cases import model_targets
     from knee.foundations.conventions import (
         invert_poses,
-        joint_to_pose,
         transform_points,
     )
 
     tg = model_targets(model, wrong)
-    fp = transform_points(invert_poses(joint_to_pose(wrong.solve(0.0)[0])), tg.tibia)[tg.tibia_footprints]
+    fp = transform_points(invert_poses(model.tibia_pose), tg.tibia)[tg.tibia_footprints]
     for r in off:
         assert 0.0 < r.tibia_footprints_axial_mm <= r.tibia_footprints_mm
         R = Rotation.from_euler("y", r.axial_rotation_deg, degrees=True)

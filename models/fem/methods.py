@@ -69,7 +69,8 @@ from knee.models.prior import (
 METHODS = ("paper", "init", "links", "kinematics")
 #: Fewest depth points that can place the knee.
 MIN_POINTS = 500
-#: Fewest depth points on the thigh (more than 70 mm above the joint) for the registration.
+#: Fewest depth points on the thigh (above the model's thigh band, :attr:`AssociationModel.thigh_from`, plus a
+#: tenth of the knee's width) for the registration.
 MIN_THIGH_POINTS = 200
 #: Fraction of the seen thigh's points the registration must match.
 MIN_ICP_FITNESS = 0.3
@@ -201,10 +202,12 @@ def register_to_model(model: AssociationModel, points, iterations: int = 60) -> 
         raise KneeInputError(f"the point cloud has {len(pts) if pts.ndim == 2 else 0} points; at least {MIN_POINTS} "
                              f"are needed to place the knee")
     thigh_model, thigh_normals = model.thigh_samples()
-    thigh_seen = pts[pts[:, 1] > 70.0]
+    # the seen thigh starts a little above the model's sampled thigh, so that it lies over it
+    above = model.thigh_from + 0.1 * model.anatomy.width
+    thigh_seen = pts[pts[:, 1] > above]
     if len(thigh_seen) < MIN_THIGH_POINTS:
-        raise KneeInputError(f"only {len(thigh_seen)} depth points on the thigh (more than 70 mm above the joint); "
-                             f"at least {MIN_THIGH_POINTS} are needed for the registration")
+        raise KneeInputError(f"only {len(thigh_seen)} depth points on the thigh (more than {above - model.joint_y:.0f} "
+                             f"mm above the joint line); at least {MIN_THIGH_POINTS} are needed for the registration")
     T_reg, fitness, _ = icp(thigh_seen[::3], thigh_model, max_distance=10.0, iterations=iterations,
                             target_normals=thigh_normals)
     if fitness < MIN_ICP_FITNESS:
@@ -286,10 +289,21 @@ def paper_method(model: AssociationModel, points, bone_force_scale: float = 1.0,
     return r
 
 
+def tibia_path(prior: Mechanism, model: AssociationModel, alphas) -> np.ndarray:
+    """The tibia's poses (n, 4, 4) in the model frame along the prior's path at flexion angles ``alphas``
+    (rad), anchored at the scan: ``T_prior(a) E`` with ``E = T_prior(a_scan)^-1 T_scan``, so that the path
+    passes through the scanned pose (the prior's own error there is carried along as a fixed offset in the
+    tibia's frame; ``E`` is the identity for a model built from the prior's own phantom)."""
+    T = joint_to_pose(prior.motion_at(np.atleast_1d(np.asarray(alphas, float)))[0])
+    scan = joint_to_pose(prior.motion_at(np.array([model.anatomy.scan_tf[0]]))[0][0])
+    return T @ (invert_poses(scan) @ model.tibia_pose)
+
+
 def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: float, increments: int = 4,
                           settle: int = 1, correction_xi: np.ndarray | None = None) -> int:
-    """Move the tibia along the prior's path from extension to ``alpha`` (rad) with the bone cells'
-    nodes prescribed (femur's held at rest), solving the grid's static equilibrium at each increment
+    """Move the tibia along the prior's path (:func:`tibia_path`) from the scanned pose to ``alpha`` (rad)
+    with the bone cells' nodes prescribed (femur's held at rest), solving the grid's static equilibrium at
+    each increment
     (quasi-static steps, see :class:`quasi_static`), and make that configuration the model's stress-free
     reference; returns the steps taken. ``correction_xi`` (6,): a pose correction of the tibia in its own
     frame at ``alpha``, rotation vector (rad) and translation (mm)
@@ -298,12 +312,12 @@ def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: floa
     mf, mt = bone_cell_masks(model.grid, model.femur, model.tibia)
     mask = mf | mt
     X = model.grid.X
-    T0 = joint_to_pose(prior.motion_at(np.array([0.0]))[0][0])
+    a_scan = model.anatomy.scan_tf[0]
     fractions = np.arange(1, increments + 1) / increments
-    poses = joint_to_pose(prior.motion_at(alpha * fractions)[0])
+    poses = tibia_path(prior, model, a_scan + (alpha - a_scan) * fractions)
     if correction_xi is not None:
         poses = poses @ np.stack([small_pose(f * np.asarray(correction_xi, float)) for f in fractions])
-    poses = poses @ invert_poses(T0)
+    poses = poses @ invert_poses(model.tibia_pose)
     steps = 0
     target = X.copy()
     # the contact pairs the tibia's motion along the increments can bring, in the pattern from the start
@@ -339,14 +353,13 @@ def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: floa
 
 
 def link_springs(model: AssociationModel, prior: Mechanism, k: float = 1000.0, T_tibia: np.ndarray | None = None):
-    """The prior's five TF links as springs between femur- and tibia-attached points (attached at
-    extension). Rest lengths: the prior's link lengths, or with ``T_tibia`` (the tibia's pose relative to
-    the femur, model frame, e.g. corrected from the depth points) the links' lengths at that pose: the
+    """The prior's five TF links as springs between femur- and tibia-attached points (attached at the
+    scanned pose). Rest lengths: the prior's link lengths, or with ``T_tibia`` (the tibia's pose relative
+    to the femur, model frame, e.g. corrected from the depth points) the links' lengths at that pose: the
     prior with its five lengths re-fitted so that its path passes through that pose."""
-    T0 = joint_to_pose(prior.motion_at(np.array([0.0]))[0][0])
     a = np.vstack([lk.femur for lk in prior.params.links])
     local = np.vstack([lk.tibia for lk in prior.params.links])
-    b = transform_points(T0, local)
+    b = transform_points(model.tibia_pose, local)
     rest = [lk.length for lk in prior.params.links]
     if T_tibia is not None:
         rest = np.linalg.norm(a - transform_points(T_tibia, local), axis=1)
@@ -429,11 +442,10 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
         return r
     notes = list(est.warnings)
     if method == "kinematics":
-        tf, _ = prior.motion_at(np.array([est.flexion]))
-        T0 = joint_to_pose(prior.motion_at(np.array([0.0]))[0][0])
-        T_tib = est.T_world_model @ joint_to_pose(tf[0])
+        T_tib = est.T_world_model @ tibia_path(prior, model, est.flexion)[0]
         return Reconstruction(method, math.degrees(est.flexion), 0, time.perf_counter() - t0, True,
-                              est.T_world_model, rigid={"femur": est.T_world_model, "tibia": T_tib @ invert_poses(T0)},
+                              est.T_world_model,
+                              rigid={"femur": est.T_world_model, "tibia": T_tib @ invert_poses(model.tibia_pose)},
                               notes=notes, estimate=dataclasses.replace(est, skin=None))
     # the cloud in the model frame: the registration of the prior-posed skin, refined on the thigh alone
     # (the thigh is held in the model, so the femur is placed by the thigh as in the paper's method)

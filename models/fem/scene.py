@@ -1,8 +1,10 @@
-"""The association model of a phantom knee (seed 000): grid + embedded bones + springs + contact.
+"""The association model of a knee (seed 000): grid + embedded bones + springs + contact.
 
-Built from a mechanism parameter set at extension (femur frame). Defaults are the paper's: soft tissue
-E = 1 MPa, nu = 0.3; bone E = 1500 MPa, nu = 0.3; collateral springs 1000 N/mm with rest length at
-extension; bone-bone penalty within 10 mm; dt = 0.05 s.
+Built from a :class:`~knee.models.fem.anatomy.KneeAnatomy` (any femur, tibia and skin surfaces in the
+femur's anatomical frame, at the scanned pose): :func:`build_knee_model`. The phantom of a parameter set
+is one such anatomy (:func:`phantom_anatomy`, at extension; :func:`build_association_model`). Defaults
+are the paper's: soft tissue E = 1 MPa, nu = 0.3; bone E = 1500 MPa, nu = 0.3; collateral springs
+1000 N/mm with rest length at the scanned pose; bone-bone penalty within 10 mm; dt = 0.05 s.
 """
 
 from __future__ import annotations
@@ -18,7 +20,10 @@ from knee.foundations.conventions import (
     matrix_to_cardan,
     transform_points,
 )
+from knee.foundations.errors import KneeInputError
 from knee.foundations.geometry import least_varying_pair, rigid_register
+from knee.foundations.surfaces import closed_surface
+from knee.models.fem.anatomy import KneeAnatomy
 from knee.models.fem.bones import tetrahedralize_to_count
 from knee.models.fem.elements import nearest_rotations
 from knee.models.fem.fields import (
@@ -30,7 +35,7 @@ from knee.models.fem.fields import (
 from knee.models.fem.grid import build_grid
 from knee.models.fem.integrator import ImplicitEuler
 from knee.models.mechanism.solver import Mechanism
-from knee.models.phantom import build_phantom
+from knee.models.phantom import Phantom, build_phantom
 
 SOFT_DENSITY = 1.0e-9   # tonne/mm^3 (1000 kg/m^3)
 BONE_DENSITY = 1.9e-9   # tonne/mm^3
@@ -81,7 +86,8 @@ class AssociationModel:
     femur_surface: object
     tibia_surface: object
     settings: FemSettings = field(default_factory=FemSettings)
-    phantom: object = None
+    anatomy: KneeAnatomy | None = None
+    phantom: object = None  # the phantom the anatomy came from, if it did (its skin parts pose the prior's skin)
     joint_y: float = 0.0
     #: grid cells inverted at the last check of the state (:func:`knee.models.fem.methods.check_state`)
     inverted_cells: int = 0
@@ -90,6 +96,16 @@ class AssociationModel:
     inverted_at_init: int = 0
     isolated_at_init: int = 0
     _thigh: tuple | None = field(default=None, repr=False)
+
+    @property
+    def tibia_pose(self) -> np.ndarray:
+        """The tibia's frame in the model (femur) frame at rest, (4, 4)."""
+        return self.anatomy.tibia_pose
+
+    @property
+    def thigh_from(self) -> float:
+        """Where the thigh region starts (model frame y, mm; :class:`KneeAnatomy`)."""
+        return self.anatomy.thigh_from
 
     @property
     def x(self):
@@ -102,19 +118,24 @@ class AssociationModel:
         if self._thigh is None:
             skin = trimesh.Trimesh(self.skin_vertices, self.skin_faces, process=False)
             dense, face = trimesh.sample.sample_surface(skin, 30000, seed=0)
-            keep = dense[:, 1] > 60.0
+            keep = dense[:, 1] > self.thigh_from
             self._thigh = (dense[keep], skin.face_normals[face[keep]])
         return self._thigh
 
 
-def isometric_lateral_pair(mech: Mechanism, femur_vertices, tibia_vertices, T0, angles_deg=range(0, 121, 10)):
-    """Femur and tibia surface points (lateral epicondyle region; lateral tibia 25-60 mm below the
-    joint) whose distance varies least when the tibia follows the mechanism from extension; tibia
-    points given at the extension pose ``T0``. Vectorised over all pairs and angles."""
+def isometric_lateral_pair(mech: Mechanism, femur_vertices, tibia_vertices, T0, width: float,
+                           angles_deg=range(0, 121, 10)):
+    """Femur and tibia surface points (lateral epicondyle region: the lateral 0.15 ``width`` of the femur
+    within 0.3 ``width`` of the epicondyles' level, the frame's y = 0; the lateral proximal tibia 0.3-0.75
+    ``width`` below its top) whose distance varies least when the tibia follows the mechanism; tibia points
+    given at the rest pose ``T0`` (4, 4). Vectorised over all pairs and angles."""
     fv, tv = np.asarray(femur_vertices), np.asarray(tibia_vertices)
     yj = float(np.max(tv[:, 1]))
-    cf = fv[(fv[:, 2] > fv[:, 2].max() - 12.0) & (np.abs(fv[:, 1] - 5.0) < 25.0)]
-    ct = tv[(tv[:, 2] > tv[:, 2].max() - 12.0) & (tv[:, 1] < yj - 25.0) & (tv[:, 1] > yj - 60.0)]
+    cf = fv[(fv[:, 2] > fv[:, 2].max() - 0.15 * width) & (np.abs(fv[:, 1]) < 0.3 * width)]
+    ct = tv[(tv[:, 2] > tv[:, 2].max() - 0.15 * width) & (tv[:, 1] < yj - 0.3 * width) & (tv[:, 1] > yj - 0.75 * width)]
+    if not len(cf) or not len(ct):
+        raise KneeInputError("no lateral epicondyle or lateral proximal tibia region for the lateral collateral "
+                             "spring; give the LCL's insertions")
     cf = cf[:: max(1, len(cf) // 150)]
     ct = ct[:: max(1, len(ct) // 150)]
     al = [a for a in angles_deg if mech.in_range(np.radians(a))]
@@ -190,35 +211,52 @@ def node_rotations(grid, soft, femur, tibia):
     return rotations
 
 
-def build_association_model(mech: Mechanism, settings: FemSettings | None = None) -> AssociationModel:
-    """The model of ``mech``'s phantom at full extension (0 deg flexion), in the femur frame."""
+def phantom_anatomy(mech: Mechanism, settings: FemSettings | None = None) -> tuple[KneeAnatomy, Phantom]:
+    """The anatomy of ``mech``'s phantom at full extension (0 deg flexion), in the femur frame, with the
+    mechanism's MCL as the medial collateral insertions (the LCL left to :func:`build_knee_model`), and the
+    phantom itself."""
     s = settings or FemSettings()
     ph = build_phantom(mech.params, shaft_length=s.shaft_length, cartilage=s.cartilage)
-    tf, _, _ = mech.solve(0.0)
-    T = joint_to_pose(tf)
-    skin = ph.skin(T)
-    contacts = [lk for lk in mech.params.links if lk.role == "contact"]
-    joint_y = float(np.mean([lk.femur[1] - (lk.femur_radius or 22.0) for lk in contacts]))
+    T = joint_to_pose(mech.solve(0.0)[0])
+    mcl = mech.params.link("mcl")
+    anatomy = KneeAnatomy(ph.femur, ph.tibia.copy().apply_transform(T), ph.skin(T), T,
+                          mcl=np.vstack([mcl.femur, transform_points(T, mcl.tibia[None, :])[0]]),
+                          name=mech.params.name)
+    return anatomy, ph
+
+
+def build_knee_model(anatomy: KneeAnatomy, settings: FemSettings | None = None, prior: Mechanism | None = None,
+                     phantom: Phantom | None = None) -> AssociationModel:
+    """The association model of a knee's surfaces (see the module docstring), in the femur frame at the
+    scanned pose.
+
+    The collateral springs run between the anatomy's insertions; without an LCL, between the pair of
+    surface points (lateral epicondyle region, lateral proximal tibia) whose distance varies least along
+    ``prior``'s motion, so that the spring does not resist flexion (a prior is then required). Raises
+    :class:`KneeInputError` when the bones are not inside the skin or a surface is not closed."""
+    s = settings or FemSettings()
+    anatomy.check()
+    skin = closed_surface(anatomy.skin, "skin")
+    joint_y, width = anatomy.joint_y, anatomy.width
     grid = build_grid(skin, s.n_across, s.element_size, s.n_along, joint_y=joint_y,
                       joint_size=s.joint_size, joint_half_width=s.joint_half_width)
-    tibia_surface = ph.tibia.copy().apply_transform(T)
-    Xf, Tf, _ = tetrahedralize_to_count(ph.femur, s.bone_tets)
-    Xt, Tt, _ = tetrahedralize_to_count(tibia_surface, s.bone_tets)
+    Xf, Tf, _ = tetrahedralize_to_count(anatomy.femur, s.bone_tets)
+    Xt, Tt, _ = tetrahedralize_to_count(anatomy.tibia, s.bone_tets)
     femur = MappedBoneElasticity(grid, Xf, Tf, s.bone_E, s.bone_nu, name="femur")
     tibia = MappedBoneElasticity(grid, Xt, Tt, s.bone_E, s.bone_nu, name="tibia")
     soft = GridElasticity(grid, s.soft_E, s.soft_nu)
-    # collateral springs: MCL along the mechanism's (isometric) MCL fibre; LCL between the lateral
-    # femoral epicondyle region and the lateral proximal tibia, at the pair of surface points whose
-    # distance varies least over the mechanism's motion (so the springs do not resist flexion)
-    mcl = mech.params.link("mcl")
-    fv, tv = np.asarray(ph.femur.vertices), np.asarray(tibia_surface.vertices)
-    lat_f, lat_t = isometric_lateral_pair(mech, fv, tv, T)
-    a = np.vstack([mcl.femur, lat_f])
-    b = np.vstack([transform_points(T, mcl.tibia[None, :])[0], lat_t])
-    springs = MappedSprings(grid, a, b, s.spring_k)
-    # contact: distal femur and proximal tibia surface points
-    fpts = fv[fv[:, 1] < 20.0]
-    tpts = tv[tv[:, 1] > T[1, 3] - 30.0]
+    # collateral springs: along the insertions given; an LCL not given between the lateral surface points
+    # whose distance varies least over the prior's motion (so the spring does not resist flexion)
+    fv, tv = np.asarray(anatomy.femur.vertices), np.asarray(anatomy.tibia.vertices)
+    lcl = anatomy.lcl
+    if lcl is None:
+        if prior is None:
+            raise KneeInputError("the model needs the LCL's insertions, or a prior mechanism to place the lateral "
+                                 "collateral spring")
+        lcl = np.vstack(isometric_lateral_pair(prior, fv, tv, anatomy.tibia_pose, width))
+    pairs = [p for p in (anatomy.mcl, lcl) if p is not None]
+    springs = MappedSprings(grid, np.vstack([p[0] for p in pairs]), np.vstack([p[1] for p in pairs]), s.spring_k)
+    fpts, tpts = anatomy.contact_points()
     contact = MappedPenaltyContact(grid, fpts, tpts, s.contact_k, s.contact_distance)
     mass = lumped_mass(grid, [femur, tibia])
     # the thigh is held (as in a leg holder) around the proximal femoral shaft: grid nodes from one
@@ -229,8 +267,15 @@ def build_association_model(mech: Mechanism, settings: FemSettings | None = None
     solver.prepare()
     return AssociationModel(grid=grid, femur=femur, tibia=tibia, springs=springs, contact=contact, soft=soft,
                             solver=solver, skin_vertices=np.asarray(skin.vertices), skin_faces=np.asarray(skin.faces),
-                            femur_surface=ph.femur, tibia_surface=tibia_surface, settings=s, phantom=ph,
-                            joint_y=joint_y)
+                            femur_surface=anatomy.femur, tibia_surface=anatomy.tibia, settings=s, anatomy=anatomy,
+                            phantom=phantom, joint_y=joint_y)
+
+
+def build_association_model(mech: Mechanism, settings: FemSettings | None = None) -> AssociationModel:
+    """The model of ``mech``'s phantom at full extension (0 deg flexion), in the femur frame
+    (:func:`phantom_anatomy`, :func:`build_knee_model`)."""
+    anatomy, ph = phantom_anatomy(mech, settings)
+    return build_knee_model(anatomy, settings, prior=mech, phantom=ph)
 
 
 def best_fit_rotation(rest: np.ndarray, current: np.ndarray) -> np.ndarray:
@@ -240,12 +285,14 @@ def best_fit_rotation(rest: np.ndarray, current: np.ndarray) -> np.ndarray:
 
 def knee_angles(model: "AssociationModel", x=None):
     """(flexion_deg, femur_tibia_angle_deg) of the FEM bones at grid positions ``x``: the flexion is the
-    Cardan flexion of the tibia's best-fit rotation relative to the femur's; the femur-tibia angle is
-    the angle between the femur's proximal axis and the tibia's distal axis (180 at extension), the
-    quantity the paper's bone-force phase drives below 100 degrees."""
+    Cardan flexion of the tibia's anatomical frame relative to the femur's (the bones' best-fit rotations
+    from rest composed with the scanned pose); the femur-tibia angle is the angle between the femur's
+    proximal axis and the tibia's distal axis (180 when aligned), the quantity the paper's bone-force
+    phase drives below 100 degrees."""
     x = model.x if x is None else x
     Rf = best_fit_rotation(model.femur.el.X, model.femur.bone_positions(x))
     Rt = best_fit_rotation(model.tibia.el.X, model.tibia.bone_positions(x))
-    flex = np.degrees(matrix_to_cardan(Rf.T @ Rt)[0])
-    between = np.degrees(np.arccos(np.clip((Rf @ [0, 1, 0]) @ (Rt @ [0, -1, 0]), -1, 1)))
+    R_scan = model.tibia_pose[:3, :3]
+    flex = np.degrees(matrix_to_cardan(Rf.T @ Rt @ R_scan)[0])
+    between = np.degrees(np.arccos(np.clip((Rf @ [0, 1, 0]) @ (Rt @ R_scan @ [0, -1, 0]), -1, 1)))
     return float(flex), float(between)

@@ -132,3 +132,22 @@ def least_varying_pair(a_points, b_points, poses, chunk: int = 256):
     _, i, j = best
     lengths = np.linalg.norm(a[i] - bw[:, j], axis=1)
     return int(i), int(j), lengths, float(lengths.std())
+
+
+#: A bone piece counts as long when it is at least this many times its own width long.
+LONG_BONE = 3.0
+
+
+def end_width(vertices, heights, lateral, end: str) -> float:
+    """The medio-lateral width (mm) of a bone at one end: the extent along ``lateral`` (3,) of the
+    vertices (V, 3) within a tenth of the bone's length from its ``end`` (``"low"`` or ``"high"`` of
+    ``heights`` (V,)); a short piece (under :data:`LONG_BONE` widths long) is measured over its whole
+    length."""
+    v = np.asarray(vertices, float)
+    h = np.asarray(heights, float)
+    lat = np.asarray(lateral, float)
+    span = h.max() - h.min()
+    w_all = np.ptp(v @ lat)
+    depth = min(0.1 * span, w_all) if span > LONG_BONE * w_all else span
+    sel = h <= h.min() + depth if end == "low" else h >= h.max() - depth
+    return float(np.ptp(v[sel] @ lat))

@@ -65,10 +65,9 @@ def case_points(truth: Mechanism, flexion_deg: float, camera: Camera, noise: Dep
 
 def model_targets(model: AssociationModel, mech: Mechanism) -> TargetPoints:
     """The target points of a model built from ``mech``, in the model frame: the femur's at rest, the
-    tibia's at the model's extension pose; the joint line at the model's ``joint_y``."""
-    T0 = joint_to_pose(mech.solve(0.0)[0])
+    tibia's at the model's rest (scanned) pose; the joint line at the model's ``joint_y``."""
     fa = np.vstack([mech.params.link(n).femur for n in ("acl", "pcl")])
-    ta = transform_points(T0, np.vstack([mech.params.link(n).tibia for n in ("acl", "pcl")]))
+    ta = transform_points(model.tibia_pose, np.vstack([mech.params.link(n).tibia for n in ("acl", "pcl")]))
     return target_points(model.femur_surface.vertices, model.tibia_surface.vertices, fa, ta,
                          model.joint_y, model.joint_y)
 
@@ -84,10 +83,10 @@ def phantom_targets(mech: Mechanism, phantom: Phantom) -> TargetPoints:
 def true_target_positions(model: AssociationModel, mech: Mechanism, truth_tf) -> tuple[TargetPoints, np.ndarray,
                                                                                         np.ndarray]:
     """The target points of ``model`` (built from ``mech``) and where they truly are, world frame: the
-    femur's at rest, the tibia's moved from the model's extension pose to the true TF pose ``truth_tf``."""
+    femur's at rest, the tibia's moved from the model's rest pose to the true TF pose ``truth_tf``."""
     targets = model_targets(model, mech)
-    T0 = joint_to_pose(mech.solve(0.0)[0])
-    truth_t = transform_points(joint_to_pose(np.asarray(truth_tf, float)) @ invert_poses(T0), targets.tibia)
+    truth_t = transform_points(joint_to_pose(np.asarray(truth_tf, float)) @ invert_poses(model.tibia_pose),
+                               targets.tibia)
     return targets, targets.femur, truth_t
 
 
@@ -219,8 +218,7 @@ def prior_floor(model: AssociationModel, truth: Mechanism, prior: Mechanism, fle
     the rest (which the skin can show); ``tibia_footprints_axial_mm`` is the footprint error that the axial
     part alone leaves, i.e. what even a perfect use of the depth points would be left with."""
     tg = model_targets(model, prior)
-    T0 = joint_to_pose(prior.solve(0.0)[0])
-    local = transform_points(invert_poses(T0), tg.tibia)
+    local = transform_points(invert_poses(model.tibia_pose), tg.tibia)
     lo, hi = prior.assembly_range
     alphas = np.arange(lo, hi, math.radians(step_deg))
     Tp = joint_to_pose(prior.motion_at(alphas)[0])  # (A, 4, 4)

@@ -1,0 +1,164 @@
+"""What the association model is built from: a knee's bone and skin surfaces in the femur's anatomical
+frame, and the regions of them that the model uses, each derived from the anatomy itself.
+
+:class:`KneeAnatomy` holds the femur, the tibia (posed as scanned), the skin (a closed surface: a whole
+leg clipped to a band around the joint, or a scan's own band), the tibia's pose in the femur frame, and
+the collateral ligaments' insertions. Every region the model needs is scaled by the knee's own size,
+``width`` (the femur's medio-lateral width at the condyles), and placed from the joint line, never by
+millimetre constants that assume one knee:
+
+- the joint line, ``joint_y``: midway between the femur's distal-most point and the tibia's highest one;
+- the contact regions: femur surface within 0.5 ``width`` above the joint line, tibia surface within
+  0.4 ``width`` below it (the condyles and the plateau, with their margins);
+- the thigh, where the model is held and where a point cloud is registered to it: the skin from
+  ``thigh_from`` upwards, 0.8 ``width`` above the joint line, or the upper 40 % of what lies above the
+  joint line when the scan is shorter than that (a scan of 60 mm of shaft still has a thigh band);
+- the band kept of a longer scan: 2.5 ``width`` above and below the joint line (:func:`clip_anatomy`).
+
+Frames: the femur's anatomical frame (x anterior, y proximal, z lateral, right knee; mm) is the model's
+frame; ``tibia_pose`` (4, 4) takes tibia-frame coordinates to it at the scanned pose.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+import trimesh
+
+from knee.foundations.conventions import pose_to_joint, transform_points
+from knee.foundations.errors import KneeInputError
+from knee.foundations.geometry import end_width
+from knee.foundations.surfaces import SurfaceQuery, clip_to_slab, closed_surface
+
+#: How far (mm) a bone vertex may lie outside the skin before the anatomy is refused.
+SKIN_TOLERANCE_MM = 0.5
+#: The band of a longer scan kept around the joint line, in femur widths above and below it.
+BAND_WIDTHS = 2.5
+#: The thigh region (held, registered) starts this many femur widths above the joint line...
+THIGH_FROM_WIDTHS = 0.8
+#: ... or, on a shorter scan, at this fraction of the height above the joint line from the top.
+THIGH_FRACTION = 0.4
+
+
+@dataclass
+class KneeAnatomy:
+    """A knee's surfaces for the association model (see the module docstring).
+
+    Attributes
+    ----------
+    femur, tibia, skin : trimesh.Trimesh
+        Closed surfaces in the femur frame (mm); the tibia at its scanned pose.
+    tibia_pose : (4, 4) float
+        The tibia's frame in the femur frame at the scan.
+    mcl, lcl : (2, 3) float or None
+        Femoral then tibial insertion of each collateral ligament (femur frame, the tibia's at the scan);
+        None when not known (the model then places the spring itself, see
+        :func:`knee.models.fem.scene.build_knee_model`).
+    name : str
+    """
+
+    femur: trimesh.Trimesh
+    tibia: trimesh.Trimesh
+    skin: trimesh.Trimesh
+    tibia_pose: np.ndarray
+    mcl: np.ndarray | None = None
+    lcl: np.ndarray | None = None
+    name: str = "knee"
+
+    @property
+    def scan_tf(self) -> np.ndarray:
+        """The TF joint coordinates (6,) of the scan (rad, mm)."""
+        return pose_to_joint(self.tibia_pose)
+
+    @property
+    def joint_y(self) -> float:
+        """The joint line's height (femur frame, mm): midway between the femur's distal-most point and the
+        tibia's highest one."""
+        return 0.5 * (float(self.femur.vertices[:, 1].min()) + float(self.tibia.vertices[:, 1].max()))
+
+    @property
+    def width(self) -> float:
+        """The femur's medio-lateral width at its distal end (mm): the knee's size."""
+        v = np.asarray(self.femur.vertices)
+        return end_width(v, v[:, 1], np.array([0.0, 0.0, 1.0]), "low")
+
+    @property
+    def thigh_from(self) -> float:
+        """Where the thigh region starts (femur frame y, mm; see the module docstring)."""
+        top = float(self.skin.vertices[:, 1].max())
+        y0 = self.joint_y
+        return min(y0 + THIGH_FROM_WIDTHS * self.width, top - THIGH_FRACTION * (top - y0))
+
+    def contact_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """Femur and tibia surface points (P, 3) of the contact regions (femur frame)."""
+        fv, tv = np.asarray(self.femur.vertices), np.asarray(self.tibia.vertices)
+        y0, w = self.joint_y, self.width
+        return fv[fv[:, 1] < y0 + 0.5 * w], tv[tv[:, 1] > y0 - 0.4 * w]
+
+    def check(self, tolerance: float = SKIN_TOLERANCE_MM) -> None:
+        """Refuse an anatomy whose bones do not lie inside its skin (with the count of bone vertices more
+        than ``tolerance`` mm outside it: a thin soft-tissue layer, such as over the anterior tibia, meets
+        the surfaces' discretisation) or whose surfaces are not closed."""
+        for name in ("femur", "tibia", "skin"):
+            closed_surface(getattr(self, name), name)
+        q = SurfaceQuery.of(self.skin)
+        for name in ("femur", "tibia"):
+            v = np.asarray(getattr(self, name).vertices)
+            out = int((q.signed_distance(v) > tolerance).sum())
+            if out:
+                raise KneeInputError(f"{out} of {len(v)} {name} vertices lie more than {tolerance:g} mm outside the "
+                                     f"skin; the skin must enclose the bones (same scan, same frame)")
+
+
+def default_collaterals(anatomy: KneeAnatomy) -> tuple[np.ndarray, np.ndarray]:
+    """Collateral insertions (each (2, 3): femoral then tibial, femur frame) estimated from the bones'
+    shapes when a scan gives none: femoral ends at the epicondyles (the centroid of the femur's surface
+    within 2 % of its width of its most medial and most lateral points, within 0.75 width of its
+    distal end); the MCL's tibial end on the medial tibial surface 0.65 width below the joint line (the
+    superficial MCL inserts about 5-6 cm below it in adults), the LCL's on the lateral tibial surface 0.35
+    width below the joint line (standing in for the fibular head)."""
+    fv, tv = np.asarray(anatomy.femur.vertices), np.asarray(anatomy.tibia.vertices)
+    y0, w = anatomy.joint_y, anatomy.width
+    distal = fv[fv[:, 1] < fv[:, 1].min() + 0.75 * w]
+    z = distal[:, 2]
+    le, me = distal[z > z.max() - 0.02 * w].mean(axis=0), distal[z < z.min() + 0.02 * w].mean(axis=0)
+
+    def side(depth, sign):
+        band = tv[np.abs(tv[:, 1] - (y0 - depth * w)) < 0.05 * w]
+        if not len(band):
+            raise KneeInputError(f"the tibia does not reach {depth:g} femur widths below the joint line for a collateral "
+                                 f"insertion; give the insertions")
+        return band[(sign * band[:, 2]).argmax()]
+
+    return np.vstack([me, side(0.65, -1.0)]), np.vstack([le, side(0.35, 1.0)])
+
+
+def clip_anatomy(anatomy: KneeAnatomy, widths: float = BAND_WIDTHS) -> KneeAnatomy:
+    """The anatomy within ``widths`` femur widths of the joint line (skin and bones clipped to the band
+    and closed at its planes); a shorter scan is returned unchanged. A skin that falls apart in the band
+    (a whole body: two legs) keeps the piece around the knee."""
+    y0, w = anatomy.joint_y, anatomy.width
+    o, up = np.array([0.0, y0, 0.0]), np.array([0.0, 1.0, 0.0])
+    skin = clip_to_slab(anatomy.skin, o, up, widths * w, widths * w)
+    pieces = skin.split(only_watertight=True) if skin is not anatomy.skin else [skin]
+    if len(pieces) > 1:
+        knee = np.vstack([anatomy.femur.vertices[anatomy.femur.vertices[:, 1] < y0 + 0.5 * w],
+                          anatomy.tibia.vertices[anatomy.tibia.vertices[:, 1] > y0 - 0.5 * w]])
+        inside = [int(SurfaceQuery.of(p).inside(knee).sum()) for p in pieces]
+        skin = pieces[int(np.argmax(inside))]
+    # the bones end a little inside the skin's band, so that their cut faces lie inside it
+    femur = clip_to_slab(anatomy.femur, o, up, (widths - 0.05) * w, (widths - 0.05) * w)
+    tibia = clip_to_slab(anatomy.tibia, o, up, (widths - 0.05) * w, (widths - 0.05) * w)
+    return replace(anatomy, femur=femur, tibia=tibia, skin=skin)
+
+
+def anatomy_in_femur_frame(femur, tibia, skin, T_scan_femur, T_scan_tibia, mcl=None, lcl=None,
+                           name: str = "knee") -> KneeAnatomy:
+    """A :class:`KneeAnatomy` from surfaces in a scan's frame and the bones' anatomical frames in it
+    (``T_scan_bone`` (4, 4): bone coordinates to the scan). ``mcl``, ``lcl``: (2, 3) insertions in the
+    scan's frame (femoral, tibial), or None."""
+    Tf_inv = np.linalg.inv(np.asarray(T_scan_femur, float))
+    to = [m.copy().apply_transform(Tf_inv) for m in (femur, tibia, skin)]
+    ins = [None if p is None else transform_points(Tf_inv, np.asarray(p, float).reshape(2, 3)) for p in (mcl, lcl)]
+    return KneeAnatomy(*to, Tf_inv @ np.asarray(T_scan_tibia, float), ins[0], ins[1], name)
