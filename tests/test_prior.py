@@ -12,7 +12,7 @@ from knee.foundations.pointclouds import backproject, voxel_downsample
 from knee.models.evaluation import pose_errors
 from knee.models.fem.depth import DepthNoise, default_camera, render_depth
 from knee.models.phantom import build_phantom
-from knee.models.prior import estimate_flexion, kinematic_estimate
+from knee.models.prior import SkinModel, estimate_flexion, kinematic_estimate
 
 #: The true flexion of the test scene: off the coarse search's 10 deg grid (-5, 5, ..., 65, 75, ...), so
 #: that the estimate must come from the refinement, not from a grid point that happens to be the truth.
@@ -79,7 +79,7 @@ def test_posed_skin_by_parts_matches_the_union_mesh(volunteer, scene):
 
 def test_flexion_from_depth_and_kinematics_alone(volunteer, scene):
     ph, tf, pts = scene
-    est = estimate_flexion(volunteer, ph, pts)
+    est = estimate_flexion(SkinModel(volunteer, ph), pts)
     assert abs(math.degrees(est.flexion) - TRUE_DEG) < 2.0 and not est.warnings
     assert est.rms < 2.0 and est.inliers > 0.8
     Tf, Tt = kinematic_estimate(volunteer, est)
@@ -93,9 +93,9 @@ def test_flexion_from_depth_and_kinematics_alone(volunteer, scene):
 def test_point_clouds_that_cannot_show_the_flexion_are_refused(volunteer, scene):
     ph, tf, pts = scene
     with pytest.raises(KneeInputError, match="at least 500"):
-        estimate_flexion(volunteer, ph, pts[:100])
+        estimate_flexion(SkinModel(volunteer, ph), pts[:100])
     with pytest.raises(KneeInputError, match="too little of the shank"):
-        estimate_flexion(volunteer, ph, pts[pts[:, 1] > 0.0])
+        estimate_flexion(SkinModel(volunteer, ph), pts[pts[:, 1] > 0.0])
 
 
 def test_a_knee_beyond_the_prior_range_is_flagged(volunteer, scene):
@@ -105,7 +105,7 @@ def test_a_knee_beyond_the_prior_range_is_flagged(volunteer, scene):
     ph, tf, pts = scene
     short = Mechanism(volunteer.params)
     short.assembly_range = (short.assembly_range[0], math.radians(60.0))  # as if the prior stopped at 60 deg
-    est = estimate_flexion(short, ph, pts, coarse_step_deg=15.0)
+    est = estimate_flexion(SkinModel(short, ph), pts, coarse_step_deg=15.0)
     assert est.at_range_end and "end of the prior's assembly range" in est.warnings[0]
 
 
@@ -117,14 +117,14 @@ def test_a_view_without_the_shank_is_flagged(volunteer, scene):
     from knee.models.prior import MIN_SEEN_SHANK, SkinModel, seen_shank_points
 
     ph, tf, pts = scene
-    est = estimate_flexion(volunteer, ph, pts)  # the default oblique camera sees the shank
+    est = estimate_flexion(SkinModel(volunteer, ph), pts)  # the default oblique camera sees the shank
     assert est.shank_points >= MIN_SEEN_SHANK
     assert not any("shank is hardly seen" in w for w in est.warnings)
     cam = default_camera(azimuth_deg=0.0)
     skin = ph.skin(joint_to_pose(tf), joint_to_pose(volunteer.solve(math.radians(TRUE_DEG))[1]))
     front = backproject(DepthNoise().apply(render_depth(skin.vertices, skin.faces, cam), np.random.default_rng(2)),
                         cam.K, cam.T_world_cam)
-    est = estimate_flexion(volunteer, ph, front)
+    est = estimate_flexion(SkinModel(volunteer, ph), front)
     assert est.shank_points < MIN_SEEN_SHANK
     assert any("shank is hardly seen" in w for w in est.warnings)
     alpha = math.radians(TRUE_DEG)
@@ -164,18 +164,18 @@ def test_the_tibia_correction_recovers_what_the_shank_shows(volunteer):
     alpha = math.radians(60.0)
     xi = np.array([0.03, 0.0, -0.025, 1.5, -1.0, 2.0])  # rad about x, y, z (tibia frame); mm
     pts = _shank_points(volunteer, ph, alpha, small_pose(xi))
-    c = correct_tibia(volunteer, ph, pts, alpha, sigma_mm=100.0, sigma_deg=90.0)
+    c = correct_tibia(SkinModel(volunteer, ph), pts, alpha, sigma_mm=100.0, sigma_deg=90.0)
     assert c.applied and c.points > 500
     np.testing.assert_allclose(c.rotation_deg, np.degrees(xi[:3]), atol=0.1)
     np.testing.assert_allclose(c.translation_mm, xi[3:], atol=0.15)
     assert c.rms_after < 0.5 < c.rms_before
     # an added axial rotation moves no point of the capsule about that axis: the same correction, axial zero
     twisted = _shank_points(volunteer, ph, alpha, small_pose(xi) @ small_pose(np.array([0, 0.1, 0, 0, 0, 0])))
-    c2 = correct_tibia(volunteer, ph, twisted, alpha, sigma_mm=100.0, sigma_deg=90.0)
+    c2 = correct_tibia(SkinModel(volunteer, ph), twisted, alpha, sigma_mm=100.0, sigma_deg=90.0)
     assert c2.rotation_deg[1] == 0.0
     np.testing.assert_allclose(c2.rotation_deg, c.rotation_deg, atol=0.1)
     # a confident prior keeps the tibia where the mechanism has it
-    stiff = correct_tibia(volunteer, ph, pts, alpha, sigma_mm=0.01, sigma_deg=0.001)
+    stiff = correct_tibia(SkinModel(volunteer, ph), pts, alpha, sigma_mm=0.01, sigma_deg=0.001)
     assert np.linalg.norm(stiff.translation_mm) < 0.1 * np.linalg.norm(c.translation_mm)
     assert np.linalg.norm(stiff.rotation_deg) < 0.1 * np.linalg.norm(c.rotation_deg)
 
@@ -188,6 +188,51 @@ def test_no_tibia_correction_without_shank_points(volunteer):
     ph = build_phantom(volunteer.params)
     thigh, _ = sample_surface(ph.skin_parts(np.eye(4))[0][0], 3000, seed=0)
     alpha = math.radians(60.0)
-    c = correct_tibia(volunteer, ph, thigh[thigh[:, 1] > 60.0], alpha)
+    c = correct_tibia(SkinModel(volunteer, ph), thigh[thigh[:, 1] > 60.0], alpha)
     assert not c.applied and "prior's pose is kept" in c.note
     np.testing.assert_array_equal(c.T, c.T_prior)
+
+
+@pytest.fixture(scope="module")
+def subject_skin(volunteer):
+    """The phantom's anatomy taken as a subject's: its extension skin, blended between the bones."""
+    from knee.models.fem.methods import skin_model
+    from knee.models.fem.scene import build_knee_model, phantom_anatomy
+    from knee.models.prior import SubjectSkinModel
+
+    anatomy, _ = phantom_anatomy(volunteer)
+    model = build_knee_model(anatomy, prior=volunteer)
+    sk = skin_model(model, volunteer)
+    assert isinstance(sk, SubjectSkinModel)
+    return sk, model
+
+
+def test_a_subjects_skin_posed_at_its_scan_is_its_skin(subject_skin, volunteer):
+    """At the scanned flexion the blended skin is the scanned skin (every vertex of it on the posed skin),
+    and the shank part moves rigidly with the tibia along the prior's path."""
+    sk, model = subject_skin
+    posed = sk.at(model.anatomy.scan_tf[0])
+    d = np.abs(posed.signed_distance(model.skin_vertices))
+    assert np.percentile(d, 99) < 0.05
+    a = math.radians(60.0)
+    T_shank = sk.at(a).parts[1][1]
+    np.testing.assert_allclose(T_shank, joint_to_pose(volunteer.motion_at(np.array([a]))[0][0]), atol=1e-9)
+
+
+def test_the_flexion_from_a_subjects_own_skin(subject_skin, volunteer):
+    """The phantom's capsule skin posed by the truth, seen obliquely, against the subject's blended skin
+    (a different surface near the knee): within 1.5 deg at off-grid angles; a frontal view of a knee
+    flexed beyond 50 deg is flagged (the shank unseen)."""
+    sk, _ = subject_skin
+    for deg in (30.0, TRUE_DEG):
+        pts, _ = _case(volunteer, deg, 35.0)
+        est = estimate_flexion(sk, pts)
+        assert abs(math.degrees(est.flexion) - deg) < 1.5, (deg, math.degrees(est.flexion))
+    est = estimate_flexion(sk, _case(volunteer, TRUE_DEG, 0.0)[0])
+    assert any("shank is hardly seen" in w for w in est.warnings)
+
+
+def _case(volunteer, deg, azimuth):
+    from knee.app.experiments.cases import case_points
+
+    return case_points(volunteer, deg, default_camera(azimuth_deg=azimuth), DepthNoise(), 3)

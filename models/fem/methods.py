@@ -60,6 +60,8 @@ from knee.models.fem.scene import AssociationModel, bone_cell_masks, knee_angles
 from knee.models.mechanism.solver import Mechanism
 from knee.models.prior import (
     FlexionEstimate,
+    SkinModel,
+    SubjectSkinModel,
     TibiaCorrection,
     correct_tibia,
     estimate_flexion,
@@ -299,6 +301,15 @@ def tibia_path(prior: Mechanism, model: AssociationModel, alphas) -> np.ndarray:
     return T @ (invert_poses(scan) @ model.tibia_pose)
 
 
+def skin_model(model: AssociationModel, prior: Mechanism) -> SkinModel:
+    """The model's skin posed by ``prior`` at any flexion, for the flexion estimate: the phantom's parts
+    for a model of a phantom, the subject's own skin blended between its bones otherwise
+    (:class:`knee.models.prior.SubjectSkinModel`, along :func:`tibia_path`)."""
+    if model.phantom is not None:
+        return SkinModel(prior, model.phantom)
+    return SubjectSkinModel(prior, model.anatomy, lambda a: tibia_path(prior, model, a)[0])
+
+
 def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: float, increments: int = 4,
                           settle: int = 1, correction_xi: np.ndarray | None = None) -> int:
     """Move the tibia along the prior's path (:func:`tibia_path`) from the scanned pose to ``alpha`` (rad)
@@ -433,7 +444,7 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     t0 = time.perf_counter()
     pts = np.asarray(points, float)
     try:
-        est = estimate_flexion(prior, model.phantom, pts)
+        est = estimate_flexion(skin_model(model, prior), pts)
     except KneeInputError as e:
         if method == "kinematics":
             raise
@@ -454,7 +465,7 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
                                                   iterations=30)
     T_world = est.T_world_model @ invert_poses(T_reg)
     # the tibia off the prior's path as far as the shank's points show (its axial rotation stays the prior's)
-    corr = correct_tibia(prior, model.phantom, pts_model, est.flexion, skin=est.skin)
+    corr = correct_tibia(est.skin, pts_model, est.flexion)
     if not corr.applied:
         notes.append(corr.note)
     s = model.solver
