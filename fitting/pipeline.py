@@ -461,6 +461,7 @@ def fit_subject(subject: Subject | str | Path, seed: int = 0, global_stage: bool
     t_all = time.perf_counter()
     say(0.0, "reading the subject folder")
     subject = subject if isinstance(subject, Subject) else load_subject(Path(subject))
+    subject.require_fit_inputs()
     motion = Motion(subject.motion.tf, subject.motion.pf if subject.has_pf else None)
     warnings = []
     if subject.motion.skipped:

@@ -5,9 +5,13 @@
     SUBJECT/
       subject.toml                  name, side, options (below)
       ct/femur.stl tibia.stl patella.stl     CT bone surfaces (STL/PLY/OBJ, mm; SPACE=LPS|RAS comment)
+      ct/skin.stl                   optional: the skin at the same pose, in the same frame (a whole leg or
+                                    a band around the knee; closed, or with small holes that close); the
+                                    association FEM needs it, the fit does not
       ct/landmarks.mrk.json         anatomical landmarks (knee.fitting.frames) and the alignment fiducials
       ct/areas/femur_intercondylar.mrk.json  points of the intercondylar space (helical pitch)
-      mri/femur.* tibia.* [patella.*]        MRI surfaces with cartilage
+      mri/femur.* tibia.* [patella.*]        MRI surfaces with cartilage (the fit needs mri/ and motion.csv;
+                                    a subject for the association FEM alone may have neither)
       mri/landmarks.mrk.json        the alignment fiducials (knee.fitting.frames.FIDUCIALS) in MRI space
       mri/areas/<name>.mrk.json     point lists: attachment areas acl_femur, acl_tibia, pcl_femur,
                                     pcl_tibia, mcl_femur, mcl_tibia, tendon_tibia, tendon_patella; articular
@@ -55,6 +59,7 @@ from knee.foundations.imaging import (
     read_motion_csv,
     read_surface,
 )
+from knee.foundations.surfaces import closed_surface
 
 FORMAT_NAME = "knee-subject"
 LIGAMENTS = ("acl", "pcl", "mcl")
@@ -79,13 +84,26 @@ class Subject:
     ct_landmarks: Markups
     mri: dict[str, trimesh.Trimesh]
     mri_landmarks: Markups
-    motion: MotionFile
+    motion: MotionFile | None
     has_pf: bool
     reference_flexion_deg: float | None = None
     project_tendon: bool = True
     bundles: dict[str, str] = field(default_factory=dict)
     truth: Path | None = None
+    skin: trimesh.Trimesh | None = None
     _areas: dict = field(default_factory=dict)
+
+    @property
+    def can_fit(self) -> bool:
+        """Whether the folder has what the fit needs: MRI surfaces and fiducials, and a measured motion."""
+        return self.motion is not None and bool(self.mri)
+
+    def require_fit_inputs(self) -> None:
+        """Refuse (one line naming what is missing) a subject without the fit's inputs."""
+        missing = [what for what, ok in (("mri/ (MRI surfaces and fiducials)", bool(self.mri)),
+                                         ("motion.csv", self.motion is not None)) if not ok]
+        if missing:
+            raise KneeInputError(f"subject {self.root} has no {' and no '.join(missing)}: the fit needs them")
 
     def area(self, name: str, space: str = "mri") -> Area:
         """A named point set (attachment area or region) of the MRI (or CT) folder; error naming it."""
@@ -163,16 +181,19 @@ def load_subject(root) -> Subject:
         raise KneeInputError(f"subject folder {root} not found")
     opt = _read_options(root)
     side = opt["side"]
+    has_mri = (root / "mri").is_dir()
     ct_lm = read_markups(root / "ct" / "landmarks.mrk.json")
-    mri_lm = read_markups(root / "mri" / "landmarks.mrk.json")
+    mri_lm = read_markups(root / "mri" / "landmarks.mrk.json") if has_mri else Markups([], np.zeros((0, 3)), [])
     if side == "left":
         for mk in (ct_lm, mri_lm):
             mk.points = mk.points * np.array([-1.0, 1.0, 1.0])
     ct, mri = {}, {}
     for bone in ("femur", "tibia"):
         ct[bone] = read_surface(find_surface(root / "ct", bone))
-        mri[bone] = read_surface(find_surface(root / "mri", bone))
-    for bone, folder, store in (("patella", "ct", ct), ("patella", "mri", mri)):
+        if has_mri:
+            mri[bone] = read_surface(find_surface(root / "mri", bone))
+    optional = (("patella", "ct", ct), ("skin", "ct", ct)) + ((("patella", "mri", mri),) if has_mri else ())
+    for bone, folder, store in optional:
         try:
             store[bone] = read_surface(find_surface(root / folder, bone))
         except KneeInputError as e:
@@ -181,12 +202,16 @@ def load_subject(root) -> Subject:
     if side == "left":
         ct = {k: _mirror_mesh(v) for k, v in ct.items()}
         mri = {k: _mirror_mesh(v) for k, v in mri.items()}
+    skin = ct.pop("skin", None)
+    if skin is not None:
+        skin = closed_surface(skin, f"{root / 'ct'} skin")
     for bone in ("femur", "tibia"):
         ct_lm.require(LANDMARKS[bone])
-        mri_lm.require(FIDUCIALS[bone])
-    motion = read_motion_csv(root / "motion.csv", side)
+        if has_mri:
+            mri_lm.require(FIDUCIALS[bone])
+    motion = read_motion_csv(root / "motion.csv", side) if (root / "motion.csv").exists() else None
     pf_opt = opt.get("pf", {}) or {}
-    has_pf = ("patella" in ct and motion.pf is not None
+    has_pf = ("patella" in ct and motion is not None and motion.pf is not None
               and all(k in ct_lm.labels for k in LANDMARKS["patella"])
               and all(k in mri_lm.labels for k in FIDUCIALS["patella"]))
     ref = pf_opt.get("reference_flexion_deg")
@@ -202,4 +227,4 @@ def load_subject(root) -> Subject:
                    mri_landmarks=mri_lm, motion=motion, has_pf=bool(has_pf),
                    reference_flexion_deg=None if ref is None else float(ref),
                    project_tendon=bool(pf_opt.get("project_tendon", True)), bundles=dict(bundles),
-                   truth=truth if truth.is_file() else None)
+                   truth=truth if truth.is_file() else None, skin=skin)

@@ -6,7 +6,8 @@ known truth:
 
 * ``ct/``: bone surfaces of femur, tibia and patella with the cartilage set back by 2 mm (subchondral
   bone), posed at 5 deg flexion in a CT scanner's LPS space (STL, ``SPACE=LPS``); the anatomical and
-  alignment landmarks; the intercondylar-space region (``ct/areas/femur_intercondylar.mrk.json``).
+  alignment landmarks; the intercondylar-space region (``ct/areas/femur_intercondylar.mrk.json``); the
+  phantom's skin envelope at the CT pose (``ct/skin.stl``).
 * ``mri/``: the same bones with cartilage (the contact spheres), posed at 10 deg flexion in a second
   scanner space, written in RAS (PLY, ``SPACE=RAS``); the alignment fiducials with 0.3 mm
   identification noise; the ligament and patellar-tendon attachment areas and the
@@ -147,6 +148,9 @@ def make_subject(out_dir, model: str = "volunteer", seed: int = 0, frames: int =
     for bone in ("femur", "tibia", "patella"):
         write_surface(out / f"ct/{bone}.stl", getattr(ct, bone).copy().apply_transform(T_ct[bone]), "LPS")
         write_surface(out / f"mri/{bone}.ply", getattr(mri, bone).copy().apply_transform(T_mri[bone]), "RAS")
+    tf_ct, pf_ct, _ = mech.solve(math.radians(CT_FLEXION_DEG))
+    skin = ct.skin(joint_to_pose(tf_ct), joint_to_pose(pf_ct))  # the phantom's envelope at the CT pose
+    write_surface(out / "ct/skin.stl", skin.apply_transform(T_ct["femur"]), "LPS")
 
     def mri_area(name, bone, pts, labels=None):
         pts = transform_points(T_mri[bone], np.asarray(pts, float))

@@ -29,7 +29,7 @@ from trimesh.sample import sample_surface
 
 from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
 from knee.foundations.errors import KneeInputError
-from knee.foundations.pointclouds import icp, voxel_downsample
+from knee.foundations.pointclouds import global_register, icp, voxel_downsample
 from knee.foundations.surfaces import SurfaceQuery, clip_to_slab
 from knee.models.mechanism.solver import Mechanism
 from knee.models.phantom import Phantom
@@ -347,6 +347,55 @@ def estimate_flexion(skin: SkinModel, points, T_init=None, coarse_step_deg: floa
                         "(e.g. a camera in front of a knee flexed beyond about 50 deg)")
     return FlexionEstimate(flexion=float(a), T_world_model=invert_poses(T), rms=s, inliers=inl, scores=scores,
                            contrast=float(contrast), warnings=warnings, skin=sk, shank_points=shank)
+
+
+#: Flexions (deg) at which a rough registration tries the prior's posed skin.
+ROUGH_FLEXIONS_DEG = (15.0, 45.0, 75.0, 105.0)
+
+
+@dataclass
+class RoughRegistration:
+    """A first placement of a point cloud on the model: ``T_model_world`` (4, 4) taking the cloud's
+    frame to the model's, the flexion (rad) of the posed skin it matched best, and the match: the
+    fraction of points within 5 mm of that skin and their RMS distance (mm)."""
+
+    T_model_world: np.ndarray
+    flexion: float
+    inliers: float
+    rms: float
+
+
+def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FLEXIONS_DEG) -> RoughRegistration:
+    """Place a point cloud (P, 3; its own frame, e.g. the camera's) on the model when its pose is known
+    only roughly: from ``T_init`` (cloud to model, within about 30 deg and 50 mm), or, without one, from a
+    global registration on shape features (:func:`knee.foundations.pointclouds.global_register`). Against
+    the prior's skin posed at a few flexions (within the prior's range), each start is refined by ICP with
+    a shrinking reach (60, 30, 15 mm); the best match wins. Raises :class:`KneeInputError` when the cloud
+    is too small."""
+    pts = np.asarray(points, float)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < MIN_POINTS or not np.all(np.isfinite(pts)):
+        raise KneeInputError(f"the point cloud needs at least {MIN_POINTS} finite (P, 3) points, got "
+                             f"{pts.shape[0] if pts.ndim == 2 else pts.size}")
+    pts = voxel_downsample(pts, VOXEL_MM)
+    lo, hi = skin.mech.assembly_range
+    cands = sorted({float(np.clip(math.radians(d), lo, hi)) for d in flexions_deg})
+    best = None
+    for a in cands:
+        samples, normals, tree = skin.samples(a)
+        if T_init is not None:
+            starts = [np.asarray(T_init, float)]
+        else:
+            starts = [global_register(pts, samples, voxel=6.0, target_normals=normals, seed=k)[0] for k in range(2)]
+        for T in starts:
+            for reach in (60.0, 30.0, 15.0):
+                T, _, _ = icp(pts, samples, init=T, max_distance=reach, iterations=30, target_normals=normals)
+            d, j = tree.query(transform_points(T, pts))
+            inl = float(np.mean(d < 5.0))
+            trimmed = np.sort(d)[: max(1, int(0.9 * d.size))]
+            rms = float(np.sqrt(np.mean(trimmed ** 2)))
+            if best is None or (inl, -rms) > (best.inliers, -best.rms):
+                best = RoughRegistration(T, a, inl, rms)
+    return best
 
 
 def seen_shank_points(skin: PosedSkin, points_model, within_mm: float = 5.0) -> int:

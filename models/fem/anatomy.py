@@ -153,6 +153,18 @@ def clip_anatomy(anatomy: KneeAnatomy, widths: float = BAND_WIDTHS) -> KneeAnato
     return replace(anatomy, femur=femur, tibia=tibia, skin=skin)
 
 
+def clip_bones_to_skin(anatomy: KneeAnatomy) -> KneeAnatomy:
+    """The bones cut to the skin's extent along the femur's axis (5 % of the femur's width inside it): a
+    skin scanned as a band around the knee with whole bones beside it."""
+    lo, hi = float(anatomy.skin.vertices[:, 1].min()), float(anatomy.skin.vertices[:, 1].max())
+    m = 0.05 * anatomy.width
+    mid = np.array([0.0, 0.5 * (lo + hi), 0.0])
+    up = np.array([0.0, 1.0, 0.0])
+    half = 0.5 * (hi - lo) - m
+    return replace(anatomy, femur=clip_to_slab(anatomy.femur, mid, up, half, half),
+                   tibia=clip_to_slab(anatomy.tibia, mid, up, half, half))
+
+
 def anatomy_in_femur_frame(femur, tibia, skin, T_scan_femur, T_scan_tibia, mcl=None, lcl=None,
                            name: str = "knee") -> KneeAnatomy:
     """A :class:`KneeAnatomy` from surfaces in a scan's frame and the bones' anatomical frames in it

@@ -51,6 +51,7 @@ import numpy as np
 
 from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
 from knee.foundations.errors import DivergenceError, KneeInputError
+from knee.foundations.geometry import rigid_register
 from knee.foundations.pointclouds import icp
 from knee.models.fem.elements import hex_inverted
 from knee.models.fem.fields import MappedSprings, affine_point_map
@@ -135,6 +136,13 @@ class Reconstruction:
     bone_phase_flexion_deg: float = float("nan")
     history: dict = field(default_factory=dict, repr=False)
 
+    def bone_pose(self, bone: str, rest_nodes) -> np.ndarray:
+        """The rigid pose (4, 4) that best carries a bone's rest points ``rest_nodes`` (P, 3; model frame at
+        rest, e.g. its tetrahedra's nodes) to where the reconstruction has them, world frame (least
+        squares over the points: the bone's own elastic give averages out)."""
+        rest_nodes = np.asarray(rest_nodes, float)
+        return rigid_register(rest_nodes, self.locate(bone, rest_nodes))[0]
+
     def locate(self, bone: str, rest_points) -> np.ndarray:
         """Where points of a bone at rest (``(P, 3)``, model frame: the femur frame at extension) are in
         the reconstruction, world frame."""
@@ -212,6 +220,12 @@ def register_to_model(model: AssociationModel, points, iterations: int = 60) -> 
                              f"mm above the joint line); at least {MIN_THIGH_POINTS} are needed for the registration")
     T_reg, fitness, _ = icp(thigh_seen[::3], thigh_model, max_distance=10.0, iterations=iterations,
                             target_normals=thigh_normals)
+    if fitness < MIN_ICP_FITNESS or np.linalg.norm(T_reg[:3, 3]) > 100.0:
+        # a thigh that is a near-perfect cylinder leaves point-to-plane ICP free to slide along its axis
+        # (measured: 150 m on a synthetic subject's capsule skin): match points to points instead, which
+        # holds the axial position where the cloud came
+        T_reg, fitness, _ = icp(thigh_seen[::3], thigh_model, max_distance=10.0, iterations=iterations,
+                                point_to_point=True)
     if fitness < MIN_ICP_FITNESS:
         raise KneeInputError(f"the registration of the point cloud to the model failed (ICP fitness {fitness:.2f}, "
                              f"below {MIN_ICP_FITNESS})")

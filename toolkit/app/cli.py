@@ -122,8 +122,16 @@ def build_parser() -> argparse.ArgumentParser:
     co.add_argument("--out", default="knee-compare", help="output folder (knee-compare)")
     co.add_argument("--force", action="store_true", help="write into a non-empty output folder")
     co.add_argument("--quiet", action="store_true", help="no progress bar")
-    fe = sub.add_parser("fem", help="the association FEM model deformed toward a depth map (the paper's method)")
-    fe.add_argument("model", help="the parameter set the model is built from (bundled name or TOML)")
+    fe = sub.add_parser("fem", help="the association FEM model deformed toward a depth map: a subject's own knee "
+                                     "(SUBJECT_DIR --prior FITTED.toml) or a parameter set's phantom")
+    fe.add_argument("model", help="a subject folder with ct/skin.stl, or a parameter set (bundled name or TOML) "
+                                  "for the phantom's standard case")
+    fe.add_argument("--prior", help="subject: the fitted parameter file (knee fit's fitted.toml), the kinematic prior")
+    fe.add_argument("--method", choices=("links", "init", "kinematics", "paper"),
+                    help="subject: (iii) links (default), (ii) init, (iv) kinematics, (i) paper")
+    fe.add_argument("--initial-pose", help="subject: text file with a rough 4x4 pose of the CT frame in the camera's "
+                                           "frame (within about 30 deg and 50 mm); default: a global registration")
+    fe.add_argument("--out", help="subject: output folder (result.json, femur.stl, tibia.stl, fem.rrd, overlay.png)")
     fe.add_argument("--flexion", type=float, default=90.0, help="flexion of the standard case's truth, deg (90)")
     fe.add_argument("--truth", help="parameter set generating the truth (default: MODEL)")
     fe.add_argument("--camera", default="oblique", help="oblique, frontal, lateral or AZ,EL,DIST (oblique)")
@@ -133,13 +141,13 @@ def build_parser() -> argparse.ArgumentParser:
     fe.add_argument("--depth", help="a measured depth image (16-bit PNG or .npy) instead of the virtual camera")
     fe.add_argument("--intrinsics", help="fx,fy,cx,cy of the depth image (pixels)")
     fe.add_argument("--depth-scale", type=float, default=1.0, help="depth units to mm (1)")
-    fe.add_argument("--pose", help="text file with the 4x4 camera-to-model transform (default identity)")
+    fe.add_argument("--pose", help="phantom: text file with the 4x4 camera-to-model transform (default identity)")
     fe.add_argument("--max-steps", type=int, default=400, help="step limit (400)")
     fe.add_argument("--bone-stall", type=float, default=0.5, metavar="DEG",
                     help="end the bone forces when the largest flexion reached grows less than DEG over 10 steps "
                          "(0.5; 0: only the paper's femur-tibia angle below 100 deg or a third of --max-steps)")
-    fe.add_argument("--rrd", help="Rerun recording to write")
-    fe.add_argument("--force", action="store_true", help="replace an existing recording")
+    fe.add_argument("--rrd", help="phantom: Rerun recording to write")
+    fe.add_argument("--force", action="store_true", help="replace an existing recording or output folder")
     fe.add_argument("--quiet", action="store_true", help="no progress bar")
     return ap
 

@@ -42,21 +42,34 @@ def backproject(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray | None
     return p
 
 
-def load_depth_image(path, K, T_world_cam=None, depth_scale: float = 1.0) -> np.ndarray:
-    """Points (P, 3) from a depth image file (16-bit PNG or a .npy array) with intrinsics ``K`` (3, 3)
-    (pixels): in mm after ``depth_scale`` (image units to mm), in the camera's frame, or in the world
-    with the camera pose ``T_world_cam`` (4, 4)."""
+def read_depth_image(path) -> np.ndarray:
+    """A depth image (height, width) float from a 16-bit PNG or a 2-D numeric ``.npy`` array, in the file's
+    units (0 where nothing was seen); a file that is not one raises :class:`KneeInputError` naming it."""
     path = Path(path)
     if not path.is_file():
         raise KneeInputError(f"{path}: no such depth image")
     if path.suffix.lower() == ".npy":
-        depth = np.load(path)
+        try:
+            depth = np.load(path, allow_pickle=False)
+        except (ValueError, OSError, EOFError) as e:
+            raise KneeInputError(f"{path}: not a readable .npy array ({e})") from None
+        if depth.dtype.kind not in "iuf":
+            raise KneeInputError(f"{path}: a depth image must hold numbers, not {depth.dtype}")
     else:
         img = o3d.io.read_image(str(path))
         depth = np.asarray(img)
         if depth.size == 0:
             raise KneeInputError(f"{path}: not a readable depth image")
-    return backproject(depth, K, T_world_cam, depth_scale)
+    if depth.ndim != 2:
+        raise KneeInputError(f"{path}: a depth image must be 2-D, got shape {depth.shape}")
+    return depth.astype(float)
+
+
+def load_depth_image(path, K, T_world_cam=None, depth_scale: float = 1.0) -> np.ndarray:
+    """Points (P, 3) from a depth image file (16-bit PNG or a .npy array) with intrinsics ``K`` (3, 3)
+    (pixels): in mm after ``depth_scale`` (image units to mm), in the camera's frame, or in the world
+    with the camera pose ``T_world_cam`` (4, 4)."""
+    return backproject(read_depth_image(path), K, T_world_cam, depth_scale)
 
 
 def load_point_cloud(path) -> np.ndarray:
@@ -87,10 +100,11 @@ def voxel_downsample(points, voxel: float) -> np.ndarray:
 
 
 def icp(source_points, target_points, init=None, max_distance: float = 20.0, iterations: int = 60,
-        target_normals=None):
-    """Rigid registration of ``source_points`` onto ``target_points`` (point-to-plane ICP, open3d).
-    ``target_normals`` (P, 3): the target's normals when known (e.g. the faces' normals of points sampled
-    on a mesh); estimated from the points otherwise.
+        target_normals=None, point_to_point: bool = False):
+    """Rigid registration of ``source_points`` onto ``target_points`` (point-to-plane ICP, open3d; or
+    point-to-point with ``point_to_point``, which a target with a direction of symmetry, such as a
+    cylinder's axis, cannot let slide). ``target_normals`` (P, 3): the target's normals when known (e.g.
+    the faces' normals of points sampled on a mesh); estimated from the points otherwise.
 
     Returns
     -------
@@ -99,12 +113,46 @@ def icp(source_points, target_points, init=None, max_distance: float = 20.0, ite
     """
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(source_points, float)))
     dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(target_points, float)))
-    if target_normals is None:
-        dst.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=8.0, max_nn=30))
+    reg = o3d.pipelines.registration
+    if point_to_point:
+        estimation = reg.TransformationEstimationPointToPoint()
     else:
-        dst.normals = o3d.utility.Vector3dVector(np.asarray(target_normals, float))
-    reg = o3d.pipelines.registration.registration_icp(
-        src, dst, max_distance, np.eye(4) if init is None else np.asarray(init, float),
-        o3d.pipelines.registration.TransformationEstimationPointToPlane(),
+        if target_normals is None:
+            dst.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=8.0, max_nn=30))
+        else:
+            dst.normals = o3d.utility.Vector3dVector(np.asarray(target_normals, float))
+        estimation = reg.TransformationEstimationPointToPlane()
+    reg = reg.registration_icp(
+        src, dst, max_distance, np.eye(4) if init is None else np.asarray(init, float), estimation,
         o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=iterations))
     return np.asarray(reg.transformation), float(reg.fitness), float(reg.inlier_rmse)
+
+
+def global_register(source_points, target_points, voxel: float = 6.0, target_normals=None, seed: int = 0,
+                    max_iterations: int = 100000) -> tuple[np.ndarray, float]:
+    """A rigid transform (4, 4) of ``source_points`` onto ``target_points`` found without an initial
+    guess: RANSAC over correspondences of FPFH shape features (open3d), both clouds thinned to ``voxel``
+    mm; returns it and its fitness (the fraction of source points within 1.5 voxels of the target). A
+    start for :func:`icp`, not a final answer."""
+    def prepared(points, normals=None):
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, float)))
+        if normals is not None:
+            pc.normals = o3d.utility.Vector3dVector(np.asarray(normals, float))
+        pc = pc.voxel_down_sample(voxel)
+        if normals is None or not pc.has_normals():
+            pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel, max_nn=30))
+        feat = o3d.pipelines.registration.compute_fpfh_feature(
+            pc, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel, max_nn=100))
+        return pc, feat
+
+    src, fs = prepared(source_points)
+    dst, fd = prepared(target_points, target_normals)
+    o3d.utility.random.seed(seed)
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):  # no warnings on stdout
+        reg = o3d.pipelines.registration.registration_ransac_based_on_feature_matching(
+            src, dst, fs, fd, True, 1.5 * voxel,
+            o3d.pipelines.registration.TransformationEstimationPointToPoint(False), 3,
+            [o3d.pipelines.registration.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+             o3d.pipelines.registration.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
+            o3d.pipelines.registration.RANSACConvergenceCriteria(max_iterations, 0.999))
+    return np.asarray(reg.transformation), float(reg.fitness)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from knee.app.commands import fem_subject
 from knee.app.console import ProgressBar, check_new, error, numbers, say
 from knee.app.experiments.cases import case_points, case_truth, run_standard_case
 from knee.app.views.fem import FemRecorder
@@ -48,6 +49,11 @@ def measured_points(args):
 
 
 def run(args) -> int:
+    if Path(args.model).is_dir():  # a subject folder: its own knee, with a fitted prior
+        return fem_subject.run(args)
+    for flag in ("prior", "method", "initial_pose", "out"):
+        if getattr(args, flag):
+            raise KneeInputError(f"--{flag.replace('_', '-')} goes with a subject folder, not a parameter set")
     rrd = Path(args.rrd) if args.rrd else None
     check_new(rrd, args.force)
     if not (math.isfinite(args.flexion) and 0.0 <= args.flexion <= 150.0):

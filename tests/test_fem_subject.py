@@ -1,0 +1,98 @@
+"""`knee fem SUBJECT_DIR --prior FITTED.toml`: a subject's own knee, a point cloud in the camera's frame,
+the bones out in the camera's frame; and its refusals of bad input."""
+
+import json
+import math
+
+import numpy as np
+import open3d as o3d
+import pytest
+from scipy.spatial.transform import Rotation
+
+from tests.test_cli import assert_clean_error, run
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    """A synthetic subject (with its CT skin), a prior (its truth with every TF endpoint moved 1-2 mm),
+    and a cloud of the truth's phantom skin at 60 deg in the camera's own frame, with a rough pose of the
+    CT in the camera (20 deg and 37 mm off)."""
+    import knee
+    from knee.app.experiments.cases import case_points
+    from knee.fitting.optimize import perturb_endpoints
+    from knee.fitting.pipeline import anatomical_frames
+    from knee.fitting.subject import load_subject
+    from knee.models.fem.depth import DepthNoise, default_camera
+    from knee.models.mechanism.params import save_toml
+
+    tmp = tmp_path_factory.mktemp("fem-subject")
+    d = knee.make_subject(tmp / "subject", seed=0)
+    truth = knee.Mechanism(knee.load_model(d / "truth.toml"))
+    cam = default_camera()
+    pts_model, tf = case_points(truth, 60.0, cam, DepthNoise(), 3)
+    T_cam_model = np.linalg.inv(cam.T_world_cam)
+    pts_cam = pts_model @ T_cam_model[:3, :3].T + T_cam_model[:3, 3]
+    o3d.io.write_point_cloud(str(tmp / "cloud.ply"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts_cam)))
+    frames = anatomical_frames(load_subject(d))
+    T_cam_ct = T_cam_model @ np.linalg.inv(frames["femur"])
+    D = np.eye(4)
+    D[:3, :3] = Rotation.from_rotvec(np.radians(20.0) * np.array([0.0, 1.0, 0.0])).as_matrix()
+    D[:3, 3] = [30.0, -20.0, 10.0]
+    np.savetxt(tmp / "pose.txt", D @ T_cam_ct)
+    save_toml(perturb_endpoints(truth.params, 1.0, 2.0, seed=3), tmp / "prior.toml")
+    return {"dir": d, "tmp": tmp, "tf": tf, "T_cam_ct": T_cam_ct, "T_cam_tibia_ct": T_cam_model @ knee.joint_to_pose(tf)
+            @ np.linalg.inv(frames["tibia"]), "frames": frames}
+
+
+def test_the_bones_of_a_subject_in_the_cameras_frame(case):
+    out = case["tmp"] / "out"
+    p = run("fem", case["dir"], "--prior", case["tmp"] / "prior.toml", "--cloud", case["tmp"] / "cloud.ply",
+            "--initial-pose", case["tmp"] / "pose.txt", "--out", out, "--quiet")
+    assert p.returncode == 0, p.stderr
+    for f in ("result.json", "femur.stl", "tibia.stl", "fem.rrd", "overlay.png"):
+        assert (out / f).stat().st_size > 0, f
+    r = json.loads((out / "result.json").read_text())
+    assert abs(r["flexion_deg"] - math.degrees(case["tf"][0])) < 2.0
+    # the femur's CT frame in the camera: within a few mm and about a degree of the truth (the cloud came
+    # from the truth's phantom skin, not from the subject's own: the thigh's axial position is the loosest)
+    err = np.linalg.inv(case["T_cam_ct"]) @ np.array(r["T_camera_femur_ct"])
+    assert np.degrees(Rotation.from_matrix(err[:3, :3]).magnitude()) < 3.0 and np.linalg.norm(err[:3, 3]) < 10.0
+    # the poses are rigid and the joint coordinates agree with them
+    for key in ("T_camera_femur_ct", "T_camera_tibia_ct"):
+        T = np.array(r[key])
+        np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9)
+    assert set(r["tf_joint_coordinates"]) == {"flexion", "adduction", "internal_rotation", "anterior", "proximal",
+                                              "lateral"}
+
+
+def test_bad_subject_input_is_one_line_and_writes_nothing(case, tmp_path):
+    d, tmp = case["dir"], case["tmp"]
+    out = tmp_path / "o"
+    assert_clean_error(run("fem", d, "--cloud", tmp / "cloud.ply", "--out", out), "--prior")
+    assert_clean_error(run("fem", d, "--prior", tmp / "prior.toml", "--cloud", tmp / "cloud.ply"), "--out")
+    # a plane of points far from any knee
+    g = np.mgrid[0:80, 0:80].reshape(2, -1).T * 3.0
+    plane = tmp_path / "plane.xyz"
+    np.savetxt(plane, np.column_stack([g[:, 0], g[:, 1], np.full(len(g), 500.0)]))
+    assert_clean_error(run("fem", d, "--prior", tmp / "prior.toml", "--cloud", plane, "--initial-pose",
+                           tmp / "pose.txt", "--out", out, "--quiet"), "do not show this knee")
+    # a depth image whose intrinsics put the principal point outside it
+    img = tmp_path / "depth.npy"
+    np.save(img, np.full((48, 64), 400.0))
+    assert_clean_error(run("fem", d, "--prior", tmp / "prior.toml", "--depth", img, "--intrinsics", "500,500,640,360",
+                           "--out", out), "64x48 pixels", "principal point")
+    bad = tmp_path / "pose.txt"
+    bad.write_text("1 0 0 0\n0 2 0 0\n0 0 1 0\n0 0 0 1\n")
+    assert_clean_error(run("fem", d, "--prior", tmp / "prior.toml", "--cloud", tmp / "cloud.ply", "--initial-pose", bad,
+                           "--out", out), "not a rotation")
+    assert not out.exists()
+
+
+def test_a_subject_without_a_skin_is_refused(case, tmp_path):
+    import shutil
+
+    d = tmp_path / "noskin"
+    shutil.copytree(case["dir"], d)
+    (d / "ct" / "skin.stl").unlink()
+    assert_clean_error(run("fem", d, "--prior", case["tmp"] / "prior.toml", "--cloud", case["tmp"] / "cloud.ply",
+                           "--out", tmp_path / "o"), "no ct/skin.stl")

@@ -1,0 +1,214 @@
+"""``knee fem SUBJECT_DIR --prior FITTED.toml (--depth D --intrinsics fx,fy,cx,cy | --cloud C) --out OUT``:
+the association model of a subject's own knee (its CT bones and skin) deformed toward a measured depth
+image or point cloud, with the fitted mechanism as its kinematic prior.
+
+The points are in the camera's frame and the knee's pose there is unknown: it is found from a rough
+initial pose (``--initial-pose``: the CT frame in the camera's, within about 30 deg and 50 mm) or, without
+one, by a global registration on shape features, then refined with the flexion
+(:func:`knee.models.prior.register_roughly`, :func:`knee.models.fem.methods.prior_method`).
+
+Outputs in OUT (written only when the run succeeds; nothing that looks like a result otherwise):
+
+- ``result.json``: the femur's and the tibia's poses as 4x4 matrices (mm) taking CT coordinates to the
+  camera's frame (what an AR overlay needs), the flexion and the TF joint coordinates, the fit's quality
+  and the warnings;
+- ``femur.stl``, ``tibia.stl``: the CT bones posed in the camera's frame;
+- ``fem.rrd``: the points, the reconstructed skin and bones (camera frame);
+- ``overlay.png``: the bones' outlines over the depth image (or over the points seen from the camera).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only, no display
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import rerun as rr  # noqa: E402
+import rerun.blueprint as rrb  # noqa: E402
+
+from knee.app.console import ProgressBar, numbers, out_dir, say  # noqa: E402
+from knee.fitting.pipeline import anatomical_frames  # noqa: E402
+from knee.fitting.subject import load_subject  # noqa: E402
+from knee.fitting.subject_anatomy import subject_anatomy  # noqa: E402
+from knee.foundations import recording as R  # noqa: E402
+from knee.foundations.conventions import JOINT_COORDINATES, invert_poses, pose_to_joint, transform_points  # noqa: E402
+from knee.foundations.errors import KneeInputError  # noqa: E402
+from knee.foundations.imaging import write_surface  # noqa: E402
+from knee.foundations.pointclouds import backproject, load_point_cloud, read_depth_image  # noqa: E402
+from knee.models.fem.methods import prior_method, skin_model  # noqa: E402
+from knee.models.fem.scene import build_knee_model  # noqa: E402
+from knee.models.mechanism import Mechanism  # noqa: E402
+from knee.models.mechanism.params import load_model  # noqa: E402
+from knee.models.prior import register_roughly  # noqa: E402
+
+
+def _read_pose(path) -> np.ndarray:
+    try:
+        T = np.loadtxt(path, dtype=float).reshape(4, 4)
+    except (OSError, ValueError):
+        raise KneeInputError(f"--initial-pose {path}: not a readable 4x4 matrix (16 numbers)") from None
+    R_ = T[:3, :3]
+    if not (np.all(np.isfinite(T)) and np.allclose(R_ @ R_.T, np.eye(3), atol=1e-3) and np.linalg.det(R_) > 0):
+        raise KneeInputError(f"--initial-pose {path}: its upper-left 3x3 block is not a rotation")
+    return T
+
+
+def _points(args):
+    """(points (P, 3) camera frame, depth image or None, K or None)."""
+    if bool(args.cloud) == bool(args.depth):
+        raise KneeInputError("give a measured cloud or depth image: --cloud FILE or --depth FILE --intrinsics "
+                             "fx,fy,cx,cy")
+    if args.cloud:
+        if args.intrinsics:
+            raise KneeInputError("--intrinsics goes with --depth, not --cloud")
+        return load_point_cloud(args.cloud), None, None
+    if not args.intrinsics:
+        raise KneeInputError("--depth needs --intrinsics fx,fy,cx,cy (pixels)")
+    fx, fy, cx, cy = numbers(args.intrinsics, 4, "--intrinsics")
+    if not (fx > 0 and fy > 0):
+        raise KneeInputError(f"--intrinsics: the focal lengths must be positive, got {fx:g}, {fy:g}")
+    if not (math.isfinite(args.depth_scale) and args.depth_scale > 0):
+        raise KneeInputError(f"--depth-scale must be a positive number, got {args.depth_scale}")
+    depth = read_depth_image(args.depth)
+    h, w = depth.shape
+    if not (0 <= cx <= w and 0 <= cy <= h):
+        raise KneeInputError(f"--depth {args.depth} is {w}x{h} pixels but --intrinsics puts the principal point at "
+                             f"({cx:g}, {cy:g}), outside it: the intrinsics do not belong to this image")
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return backproject(depth, K, None, args.depth_scale), depth * args.depth_scale, K
+
+
+def run(args) -> int:
+    subject_dir = Path(args.model)
+    if not args.prior:
+        raise KneeInputError("a subject needs its kinematic prior: --prior FITTED.toml (knee fit's fitted.toml)")
+    if not args.out:
+        raise KneeInputError("a subject's run writes its results to a folder: --out OUT")
+    out = out_dir(args.out, args.force)
+    if out.resolve() == subject_dir.resolve() or subject_dir.resolve() in out.resolve().parents:
+        raise KneeInputError(f"output folder {out} is inside the subject folder; the input folder is never written to")
+    init_pose = _read_pose(args.initial_pose) if args.initial_pose else None
+    method = args.method or "links"
+    points_cam, depth, K = _points(args)
+    subject = load_subject(subject_dir)
+    prior = Mechanism(load_model(args.prior))
+    say(f"knee fem: the association model of subject {subject.name} ...")
+    t0 = time.perf_counter()
+    anatomy = subject_anatomy(subject, prior.params)
+    model = build_knee_model(anatomy, prior=prior)
+    T_ct_model = anatomical_frames(subject)["femur"]  # model (femur frame) -> CT
+    built = time.perf_counter() - t0
+    say(f"  grid {len(model.grid.cells)} cells, bones {len(model.femur.el.cells)} + {len(model.tibia.el.cells)} "
+        f"tetrahedra; {built:.1f} s")
+    skin = skin_model(model, prior)
+    # the cloud on the model: a rough placement (initial pose or global registration), then the method
+    T_init = None if init_pose is None else invert_poses(init_pose @ T_ct_model)  # camera -> model
+    t1 = time.perf_counter()
+    rough = register_roughly(skin, points_cam, T_init)
+    if rough.inliers < 0.3:
+        raise KneeInputError(f"the points do not show this knee: after registration only {100 * rough.inliers:.0f} % "
+                             f"of them lie within 5 mm of its skin (RMS {rough.rms:.1f} mm)")
+    pts = transform_points(rough.T_model_world, points_cam)
+    bar = None if args.quiet else ProgressBar()
+    if bar:
+        bar(0.3, f"registered ({100 * rough.inliers:.0f} % within 5 mm); {method}")
+    recon = prior_method(method, model, prior, pts)
+    seconds = time.perf_counter() - t1
+    lo, hi = (math.degrees(v) for v in prior.assembly_range)
+    if recon.estimate is not None and recon.estimate.at_range_end:
+        raise KneeInputError(f"the knee's flexion lies at or beyond the end of the prior's assembly range ({lo:.1f} to "
+                             f"{hi:.1f} deg): {args.prior} does not cover it; refit with the motion covering it")
+    if bar:
+        bar(1.0, f"{recon.steps} steps")
+    # bones in the camera's frame: rest (model frame) -> reconstruction (rough model frame) -> camera
+    T_cam_world = invert_poses(rough.T_model_world)
+    poses = {b: T_cam_world @ recon.bone_pose(b, getattr(model, b).el.X) @ invert_poses(T_ct_model)
+             for b in ("femur", "tibia")}
+    tf_pose = invert_poses(T_ct_model) @ invert_poses(poses["femur"]) @ poses["tibia"] @ anatomical_frames(subject)["tibia"]
+    tf = pose_to_joint(tf_pose)
+    result = {
+        "subject": subject.name, "method": recon.method, "prior": str(args.prior),
+        "flexion_deg": math.degrees(tf[0]),
+        "tf_joint_coordinates": {name: (math.degrees(v) if k < 3 else float(v))
+                                 for k, (name, v) in enumerate(zip(JOINT_COORDINATES, tf))},
+        "units": {"angles": "deg", "translations": "mm", "poses": "4x4, mm: CT coordinates to the camera's frame"},
+        "T_camera_femur_ct": poses["femur"].tolist(), "T_camera_tibia_ct": poses["tibia"].tolist(),
+        "fit": {"registration_inliers_5mm": rough.inliers, "registration_rms_mm": rough.rms,
+                "flexion_estimate_rms_mm": None if recon.estimate is None else recon.estimate.rms,
+                "flexion_estimate_inliers": None if recon.estimate is None else recon.estimate.inliers,
+                "steps": recon.steps, "converged": recon.converged},
+        "seconds": {"model": built, "registration_and_method": seconds},
+        "warnings": list(recon.notes),
+    }
+    _write_outputs(out, subject, model, recon, poses, points_cam, T_cam_world, result, depth, K)
+    print(f"{subject.name}: flexion {result['flexion_deg']:.1f} deg ({recon.method}), {recon.steps} steps in "
+          f"{seconds:.1f} s; registration: {100 * rough.inliers:.0f} % of the points within 5 mm of the skin")
+    for w in recon.notes:
+        print(f"warning: {w}")
+    print(f"results: {out / 'result.json'}, {out / 'femur.stl'}, {out / 'tibia.stl'}, {out / 'overlay.png'}\n"
+          f"recording: {out / 'fem.rrd'}  (open with: rerun {out / 'fem.rrd'})")
+    return 0
+
+
+def _write_outputs(out: Path, subject, model, recon, poses, points_cam, T_cam_world, result, depth, K) -> None:
+    """Every output into a temporary folder beside OUT, then renamed into place: a run that fails leaves
+    no half-written results."""
+    tmp = out.with_name(f".{out.name}.partial")
+    if tmp.exists():
+        for f in tmp.iterdir():
+            f.unlink()
+    tmp.mkdir(parents=True, exist_ok=True)
+    meshes = {b: subject.ct[b].copy().apply_transform(poses[b]) for b in ("femur", "tibia")}
+    for b, m in meshes.items():
+        write_surface(tmp / f"{b}.stl", m, "LPS")
+    (tmp / "result.json").write_text(json.dumps(result, indent=1), encoding="utf-8")
+    rec = R.new_recording()
+    R.save(rec, tmp / "fem.rrd", rrb.Blueprint(rrb.Spatial3DView(origin="camera", name="Camera frame"),
+                                                collapse_panels=True))
+    rec.log("camera/points", rr.Points3D(points_cam[:: max(1, len(points_cam) // 60000)].astype(np.float32),
+                                         colors=[(90, 170, 255)], radii=[0.6]), static=True)
+    for b, m in meshes.items():
+        R.log_mesh(rec, f"camera/{b}", m, R.BONE_COLOURS[b])
+    if recon.grid_x is not None:  # the FEM's skin (the mechanism alone has none)
+        skin = transform_points(T_cam_world, recon.locate("femur", model.skin_vertices))
+        rec.log("camera/skin", rr.Mesh3D(vertex_positions=skin.astype(np.float32),
+                                         triangle_indices=np.asarray(model.skin_faces, np.uint32),
+                                         albedo_factor=R.BONE_COLOURS["skin"]), static=True)
+    rec.flush()
+    rec.disconnect()
+    _overlay(tmp / "overlay.png", meshes, points_cam, depth, K)
+    out.mkdir(parents=True, exist_ok=True)
+    for f in tmp.iterdir():
+        f.replace(out / f.name)
+    tmp.rmdir()
+
+
+def _overlay(path, meshes, points_cam, depth, K) -> None:
+    """The bones' vertices projected into the image (or the points and bones seen along the optical
+    axis, without a depth image)."""
+    fig, ax = plt.subplots(figsize=(8, 6))
+    if depth is not None:
+        ax.imshow(np.where(depth > 0, depth, np.nan), cmap="gray")
+        for b, m in meshes.items():
+            v = np.asarray(m.vertices)
+            v = v[v[:, 2] > 1.0]
+            uv = (K @ v.T).T
+            uv = uv[:, :2] / uv[:, 2:3]
+            ax.scatter(uv[:, 0], uv[:, 1], s=0.3, alpha=0.5, label=b)
+    else:
+        p = points_cam[:: max(1, len(points_cam) // 20000)]
+        ax.scatter(p[:, 0], -p[:, 1], s=0.2, c="0.6")
+        for b, m in meshes.items():
+            v = np.asarray(m.vertices)
+            ax.scatter(v[:, 0], -v[:, 1], s=0.3, alpha=0.5, label=b)
+        ax.set_aspect("equal")
+    ax.legend(markerscale=20)
+    ax.set_title("the reconstructed bones over the depth data (camera frame)")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
