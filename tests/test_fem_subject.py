@@ -96,3 +96,23 @@ def test_a_subject_without_a_skin_is_refused(case, tmp_path):
     (d / "ct" / "skin.stl").unlink()
     assert_clean_error(run("fem", d, "--prior", case["tmp"] / "prior.toml", "--cloud", case["tmp"] / "cloud.ply",
                            "--out", tmp_path / "o"), "no ct/skin.stl")
+
+
+def test_compare_on_a_subject_with_a_measured_motion(case, tmp_path):
+    """``knee compare SUBJECT --prior --truth-motion``: the methods on the subject's own knee, the truth
+    posed by rows of a measured motion (here the synthetic subject's own), the points in the camera's
+    frame; the table and the plot written; the prior with its links beats the mechanism alone here."""
+    import csv
+
+    out = tmp_path / "cmp"
+    p = run("compare", case["dir"], "--prior", case["tmp"] / "prior.toml", "--truth-motion", case["dir"] / "motion.csv",
+            "--frames", 1, "--methods", "links,kinematics", "--out", out, "--quiet")
+    assert p.returncode == 0, p.stderr
+    rows = list(csv.DictReader((out / "compare.csv").open()))
+    assert [r["method"] for r in rows] == ["links", "kinematics"] and not any(r["failed"] for r in rows)
+    for r in rows:
+        assert abs(float(r["flexion_estimated_deg"]) - float(r["flexion_true_deg"])) < 3.0
+        assert 0.1 < float(r["femur_footprints_mm"]) < 10.0
+    assert (out / "compare.png").stat().st_size > 0 and "Subject" in (out / "compare.md").read_text()
+    assert_clean_error(run("compare", case["dir"], "--prior", case["tmp"] / "prior.toml", "--out", tmp_path / "x"),
+                       "--truth-motion")

@@ -328,35 +328,46 @@ def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: floa
                           settle: int = 1, correction_xi: np.ndarray | None = None) -> int:
     """Move the tibia along the prior's path (:func:`tibia_path`) from the scanned pose to ``alpha`` (rad)
     with the bone cells' nodes prescribed (femur's held at rest), solving the grid's static equilibrium at
-    each increment
-    (quasi-static steps, see :class:`quasi_static`), and make that configuration the model's stress-free
-    reference; returns the steps taken. ``correction_xi`` (6,): a pose correction of the tibia in its own
-    frame at ``alpha``, rotation vector (rad) and translation (mm)
+    each increment (quasi-static steps, see :class:`quasi_static`), and make that configuration the
+    model's stress-free reference (:func:`move_tibia`); returns the steps taken. ``correction_xi`` (6,): a
+    pose correction of the tibia in its own frame at ``alpha``, rotation vector (rad) and translation (mm)
     (:class:`knee.models.prior.TibiaCorrection`), blended in along the increments."""
-    s = model.solver
-    mf, mt = bone_cell_masks(model.grid, model.femur, model.tibia)
-    mask = mf | mt
-    X = model.grid.X
     a_scan = model.anatomy.scan_tf[0]
     fractions = np.arange(1, increments + 1) / increments
     poses = tibia_path(prior, model, a_scan + (alpha - a_scan) * fractions)
     if correction_xi is not None:
         poses = poses @ np.stack([small_pose(f * np.asarray(correction_xi, float)) for f in fractions])
-    poses = poses @ invert_poses(model.tibia_pose)
+    return move_tibia(model, poses, settle)
+
+
+def move_tibia(model: AssociationModel, poses, settle: int = 1, rebase: bool = True) -> int:
+    """Move the tibia through ``poses`` (n, 4, 4): the tibia's frame in the femur frame at each increment,
+    with the grid nodes of the bones' cells prescribed (the femur's held at rest; Dirichlet conditions in
+    the implicit solve) and the rest of the grid in equilibrium at each; then, with ``rebase``, make the
+    final configuration the stress-free reference. Returns the steps taken."""
+    s = model.solver
+    mf, mt = bone_cell_masks(model.grid, model.femur, model.tibia)
+    mask = mf | mt
+    X = model.grid.X
+    moves = np.asarray(poses, float) @ invert_poses(model.tibia_pose)
     steps = 0
     target = X.copy()
     # the contact pairs the tibia's motion along the increments can bring, in the pattern from the start
     # (one symbolic analysis instead of one per increment that brings new pairs)
-    s.reserve_pattern(model.contact.pattern_reserve_for_motion(np.concatenate([np.eye(4)[None], poses])))
-    for T in list(poses) + [poses[-1]] * settle:
+    s.reserve_pattern(model.contact.pattern_reserve_for_motion(np.concatenate([np.eye(4)[None], moves])))
+    for T in list(moves) + [moves[-1]] * settle:
         target[mt] = transform_points(T, X[mt])
         s.step(prescribed=(mask, target))
         steps += 1
     s.v[:] = 0.0
-    # the initialised configuration becomes the stress-free reference: the model has no muscles to hold
-    # the flexion, so without this the tissue's bending energy would return the knee to extension;
-    # elements inverted by the motion (crushed tissue behind the knee) are dropped, and the bone contact
-    # takes its activation distances from this configuration
+    if not rebase:
+        s.set_prescribed(None)
+        s.invalidate()
+        return steps
+    # the configuration becomes the stress-free reference: the model has no muscles to hold the flexion,
+    # so without this the tissue's bending energy would return the knee to extension; elements inverted by
+    # the motion (crushed tissue behind the knee) are dropped, and the bone contact takes its activation
+    # distances from this configuration
     x = s.x
     kept = model.soft.el.rebase(x)
     kept += model.femur.el.rebase(model.femur.bone_positions(x))
@@ -372,7 +383,7 @@ def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: floa
         alive[np.unique(bone.map.J.indices)] = True
     s.fixed = s.fixed | ~alive
     model.isolated_at_init = int((~alive).sum())
-    s.set_prescribed(None)
+    s.set_prescribed(None)  # after the new fixed nodes: the free set is computed from them
     s.invalidate()
     return steps
 

@@ -108,8 +108,14 @@ def build_parser() -> argparse.ArgumentParser:
     _gait_options(op)
     op.add_argument("--out", default="knee-osteotomy", help="output folder (knee-osteotomy)")
     op.add_argument("--force", action="store_true")
-    co = sub.add_parser("compare", help="the four ways to use the mechanism with the FEM, on standard cases")
-    co.add_argument("model", help="the prior: a bundled parameter set or a TOML file")
+    co = sub.add_parser("compare", help="the four ways to use the mechanism with the FEM: on a subject's own knee "
+                                         "(SUBJECT_DIR --prior --truth-motion) or a parameter set's standard cases")
+    co.add_argument("model", help="a subject folder with ct/skin.stl, or the prior: a bundled parameter set or a "
+                                  "TOML file")
+    co.add_argument("--prior", help="subject: the fitted parameter file, the kinematic prior")
+    co.add_argument("--truth-motion", help="subject: a measured motion (the subject folder's motion.csv format) whose "
+                                           "rows pose the truth")
+    co.add_argument("--frames", type=int, default=4, help="subject: how many rows of the motion, spread over it (4)")
     co.add_argument("--truth", help="parameter set generating the truth (default: MODEL, with the prior = MODEL "
                                     "perturbed by --perturb)")
     co.add_argument("--flexion", default="30:120:15", help="true flexion angles, FROM:TO:STEP or a list (30:120:15)")

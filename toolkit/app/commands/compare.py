@@ -3,8 +3,13 @@ the table, the plot and the recording (:mod:`knee.app.experiments.cases`, :mod:`
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
+
 from knee.app.console import ProgressBar, flexion_list, out_dir, say
 from knee.app.experiments.cases import compare_cases, prior_floor, truth_phantom
+from knee.app.experiments.subject_cases import compare_subject
 from knee.app.reports.compare import (
     CompareRecorder,
     floor_markdown,
@@ -15,7 +20,10 @@ from knee.app.reports.compare import (
     write_csv,
 )
 from knee.fitting.optimize import perturb_endpoints
+from knee.fitting.subject import load_subject
+from knee.fitting.subject_anatomy import subject_anatomy
 from knee.foundations.errors import KneeInputError
+from knee.foundations.imaging import read_motion_csv
 from knee.models.fem.depth import CAMERA_PLACEMENTS, DepthNoise, camera_from_spec
 from knee.models.fem.methods import METHODS
 from knee.models.fem.scene import build_association_model
@@ -36,6 +44,11 @@ def camera_list(text: str) -> list[str]:
 
 
 def run(args) -> int:
+    if Path(args.model).is_dir():
+        return run_subject(args)
+    for flag in ("prior", "truth_motion"):
+        if getattr(args, flag):
+            raise KneeInputError(f"--{flag.replace('_', '-')} goes with a subject folder, not a parameter set")
     flexions = flexion_list(args.flexion)
     cams = {c: camera_from_spec(c) for c in camera_list(args.cameras)}
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
@@ -87,4 +100,44 @@ def run(args) -> int:
         print(f"note: {n}")
     print(f"table: {out / 'compare.csv'}, {out / 'compare.md'}\nplot: {out / 'compare.png'}\n"
           f"recording: {out / 'compare.rrd'}  (open with: rerun {out / 'compare.rrd'})")
+    return 0
+
+
+def run_subject(args) -> int:
+    """``knee compare SUBJECT_DIR --prior FITTED.toml --truth-motion MOTION.csv``
+    (:mod:`knee.app.experiments.subject_cases`)."""
+    if not args.prior or not args.truth_motion:
+        raise KneeInputError("a subject's comparison needs --prior FITTED.toml and --truth-motion MOTION.csv")
+    if not 1 <= args.frames <= 50:
+        raise KneeInputError(f"--frames must be 1-50, got {args.frames}")
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    if not methods or any(m not in METHODS for m in methods):
+        raise KneeInputError(f"--methods must be a comma list of {', '.join(METHODS)}, got {args.methods!r}")
+    azimuths = []
+    for c in camera_list(args.cameras):
+        if c.lower() not in CAMERA_PLACEMENTS:
+            raise KneeInputError(f"a subject's comparison takes named cameras ({', '.join(CAMERA_PLACEMENTS)}), got {c!r}")
+        azimuths.append(CAMERA_PLACEMENTS[c.lower()])
+    out = out_dir(args.out, args.force)
+    subject = load_subject(args.model)
+    prior = Mechanism(load_model(args.prior))
+    motion = read_motion_csv(args.truth_motion, subject.side)
+    rows_idx = np.unique(np.linspace(0, len(motion.tf) - 1, min(args.frames, len(motion.tf))).round().astype(int))
+    anatomy = subject_anatomy(subject, prior.params)
+    say(f"knee compare: subject {subject.name}, prior {prior.params.name}; {len(rows_idx)} rows of "
+        f"{args.truth_motion} x {len(azimuths)} camera(s) x {len(methods)} methods (truth skin: the association "
+        f"model's own tissue posed with the bones, a stand-in)")
+    bar = ProgressBar()
+    rows = compare_subject(anatomy, prior, motion.tf[rows_idx], methods, tuple(azimuths),
+                           None if args.no_noise else DepthNoise(), args.seed,
+                           None if args.quiet else (lambda i, n, t: bar(i / n, t)))
+    out.mkdir(parents=True, exist_ok=True)
+    write_csv(rows, out / "compare.csv")
+    title = f"Subject {subject.name}: truth from {args.truth_motion}, prior {args.prior}"
+    (out / "compare.md").write_text(markdown(rows, methods, title), encoding="utf-8")
+    plot(rows, methods, out / "compare.png", title)
+    for m, v in summary(rows, methods).items():
+        print(f"{m:11s} cases {v.cases}  failed {v.failed}  footprints {v.footprints_mm:.2f} mm  epiphysis "
+              f"{v.epiphysis_mm:.2f} mm  |flexion error| {v.flexion_error_deg:.2f} deg  wall {v.wall_s:.1f} s")
+    print(f"table: {out / 'compare.csv'}, {out / 'compare.md'}\nplot: {out / 'compare.png'}")
     return 0

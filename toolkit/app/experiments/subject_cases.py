@@ -1,0 +1,144 @@
+"""Experiment runner: the four methods on a subject's own knee, the truth from a measured motion
+(``knee compare SUBJECT_DIR --prior FITTED.toml --truth-motion MOTION.csv``).
+
+A case: a row of the measured motion (TF joint coordinates, e.g. from dynamic imaging) poses the subject's
+CT bones; the skin is posed with them by the association model itself, with the bones' cells prescribed
+along the way (a stand-in for an independent truth skin: the estimator's model has the same tissue, which
+favours methods (ii) and (iii); the benchmark of the next issue replaces it); a virtual camera, placed
+relative to the knee, sees that skin with depth noise; the methods see only the points, in the camera's
+own frame, and a rough pose of the knee in it (the truth turned by 15 deg and moved by 25 mm), and place
+the bones in the camera's frame. The errors are measured there at the target points (ACL/PCL footprints
+from the prior's attachments, the epiphysis).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from knee.app.experiments.cases import CompareRow
+from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
+from knee.foundations.errors import KneeError
+from knee.foundations.pointclouds import backproject
+from knee.models.evaluation import target_errors, target_points
+from knee.models.fem.anatomy import KneeAnatomy
+from knee.models.fem.depth import Camera, DepthNoise, default_camera, render_depth
+from knee.models.fem.mapping import TrilinearMapping
+from knee.models.fem.methods import METHODS, move_tibia, prior_method, quasi_static, skin_model
+from knee.models.fem.scene import build_knee_model
+from knee.models.mechanism.solver import Mechanism
+from knee.models.prior import register_roughly
+
+#: The rough pose the methods are given: the truth turned by this much (deg) and moved by this much (mm).
+ROUGH_DEG, ROUGH_MM = 15.0, 25.0
+
+
+@dataclass
+class SubjectCase:
+    """One case: the true TF pose (4, 4, femur frame), the camera (placed in the femur frame), the
+    depth points (P, 3) in the camera's frame."""
+
+    label: str
+    flexion_deg: float
+    T_tibia: np.ndarray
+    camera: Camera
+    points: np.ndarray
+
+
+def posed_skin(anatomy: KneeAnatomy, prior: Mechanism, T_tibia, increments: int = 4):
+    """The skin (vertices (S, 3), faces) with the tibia moved from the scan to ``T_tibia`` (4, 4) by the
+    association model with the bones' cells prescribed (a fresh model; quasi-static increments)."""
+    model = build_knee_model(anatomy, prior=prior)
+    T0 = anatomy.tibia_pose
+    rot = Rotation.from_matrix(np.stack([T0[:3, :3], np.asarray(T_tibia)[:3, :3]]))
+    f = np.arange(1, increments + 1) / increments
+    # the increments: rotation by slerp-like interpolation of the relative rotation, translation linearly
+    rel = (rot[0].inv() * rot[1]).as_rotvec()
+    poses = np.tile(np.eye(4), (increments, 1, 1))
+    poses[:, :3, :3] = (rot[0] * Rotation.from_rotvec(f[:, None] * rel[None])).as_matrix()
+    poses[:, :3, 3] = (1 - f)[:, None] * T0[:3, 3] + f[:, None] * np.asarray(T_tibia)[:3, 3]
+    with quasi_static(model.solver):
+        move_tibia(model, poses, rebase=False)
+    return TrilinearMapping(model.grid, model.skin_vertices).apply(model.solver.x), model.skin_faces
+
+
+def subject_cases(anatomy: KneeAnatomy, prior: Mechanism, motion_tf, azimuths=(35.0,), noise=DepthNoise(),
+                  seed: int = 0) -> list[SubjectCase]:
+    """The cases of a measured motion's rows ``motion_tf`` (n, 6) (rad, mm), each seen from cameras at
+    the given azimuths (deg toward lateral, 350 mm, raised 30 deg, aimed at the joint line)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for tf in np.atleast_2d(np.asarray(motion_tf, float)):
+        T = joint_to_pose(tf)
+        verts, faces = posed_skin(anatomy, prior, T)
+        for az in azimuths:
+            cam = default_camera(azimuth_deg=az, target=(0.0, anatomy.joint_y, 0.0))
+            depth = render_depth(verts, faces, cam)
+            if noise is not None:
+                depth = noise.apply(depth, rng)
+            out.append(SubjectCase(f"az {az:g}", math.degrees(tf[0]), T, cam, backproject(depth, cam.K)))
+    return out
+
+
+def _rough_start(T_model_cam, rng) -> np.ndarray:
+    D = np.eye(4)
+    axis = rng.normal(size=3)
+    D[:3, :3] = Rotation.from_rotvec(math.radians(ROUGH_DEG) * axis / np.linalg.norm(axis)).as_matrix()
+    d = rng.normal(size=3)
+    D[:3, 3] = ROUGH_MM * d / np.linalg.norm(d)
+    return D @ T_model_cam
+
+
+def run_subject_case(case: SubjectCase, method: str, anatomy: KneeAnatomy, prior: Mechanism, seed: int = 0):
+    """One method on one case; returns (:class:`CompareRow`, the estimated bones' poses (4, 4) in the
+    camera's frame, model coordinates at rest to camera)."""
+    model = build_knee_model(anatomy, prior=prior)
+    t0 = time.perf_counter()
+    T_model_cam = case.camera.T_world_cam  # the camera's frame to the model (femur) frame, the truth
+    rough = register_roughly(skin_model(model, prior), case.points,
+                             _rough_start(T_model_cam, np.random.default_rng(seed)))
+    pts = transform_points(rough.T_model_world, case.points)
+    recon = prior_method(method, model, prior, pts)
+    wall = time.perf_counter() - t0
+    T_cam_world = invert_poses(rough.T_model_world)
+    fa = np.vstack([prior.params.link(n).femur for n in ("acl", "pcl")])
+    ta = transform_points(anatomy.tibia_pose, np.vstack([prior.params.link(n).tibia for n in ("acl", "pcl")]))
+    tg = target_points(anatomy.femur.vertices, anatomy.tibia.vertices, fa, ta, anatomy.joint_y, anatomy.joint_y)
+    T_cam_model = invert_poses(T_model_cam)
+    true_f = transform_points(T_cam_model, tg.femur)
+    true_t = transform_points(T_cam_model @ case.T_tibia @ invert_poses(anatomy.tibia_pose), tg.tibia)
+    est_f = transform_points(T_cam_world, recon.locate("femur", tg.femur))
+    est_t = transform_points(T_cam_world, recon.locate("tibia", tg.tibia))
+    e = target_errors(tg, est_f, est_t, true_f, true_t)
+    corr = recon.tibia_correction
+    row = CompareRow(method, case.label, case.flexion_deg, recon.flexion_deg, e.femur.footprints.mean,
+                     e.tibia.footprints.mean, e.femur.epiphysis.mean, e.tibia.epiphysis.mean, recon.steps, wall,
+                     recon.converged,
+                     float(np.linalg.norm(corr.rotation_deg)) if corr is not None and corr.applied else float("nan"),
+                     float(np.linalg.norm(corr.translation_mm)) if corr is not None and corr.applied else float("nan"),
+                     "; ".join(recon.notes))
+    return row
+
+
+def compare_subject(anatomy: KneeAnatomy, prior: Mechanism, motion_tf, methods=METHODS, azimuths=(35.0,),
+                    noise=DepthNoise(), seed: int = 0,
+                    progress: Callable[[int, int, str], None] | None = None) -> list[CompareRow]:
+    """Every method on every case of :func:`subject_cases`; a run that fails is a row with its reason."""
+    cases = subject_cases(anatomy, prior, motion_tf, azimuths, noise, seed)
+    rows, total = [], len(cases) * len(methods)
+    for i, case in enumerate(cases):
+        for j, method in enumerate(methods):
+            if progress:
+                progress(i * len(methods) + j, total, f"{method} at {case.flexion_deg:.1f} deg, {case.label}")
+            try:
+                rows.append(run_subject_case(case, method, anatomy, prior, seed))
+            except KneeError as e:
+                rows.append(CompareRow(method, case.label, case.flexion_deg, failed=str(e)))
+    if progress:
+        progress(total, total, "done")
+    return rows
