@@ -228,3 +228,11 @@ def test_prior_benchmark_refuses_a_repeat_count_below_one():
                        env=dict(os.environ, CI="1"), timeout=120)
     assert p.returncode == 2 and "Traceback" not in p.stderr
     assert p.stderr.strip().splitlines()[-1] == "bench_prior: --repeat must be at least 1"
+
+
+@pytest.mark.parametrize("command", [["synth-subject", "x"], ["fit", "x", "--out", "y"], ["fem", "volunteer"],
+                                     ["compare", "volunteer"]])
+def test_a_negative_seed_is_one_line(command, tmp_path):
+    p = run(*command, "--seed", "-1")
+    assert p.returncode == 2 and p.stderr.count("\n") == 1 and "--seed" in p.stderr and "4294967295" in p.stderr
+    assert "Traceback" not in p.stderr

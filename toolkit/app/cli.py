@@ -48,6 +48,17 @@ def _gait_options(p) -> None:
     p.add_argument("--height", type=float, default=1.75, help="body height, m (1.75)")
 
 
+def seed(text: str) -> int:
+    """A random seed: a whole number from 0 to 2**32 - 1 (argparse type)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
+    if not 0 <= v < 2 ** 32:
+        raise argparse.ArgumentTypeError(f"must be from 0 to 4294967295, got {v}")
+    return v
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with its usage errors as one ``knee: error:`` line and exit code 2."""
 
@@ -74,12 +85,12 @@ def build_parser() -> argparse.ArgumentParser:
     ss = sub.add_parser("synth-subject", help="write a synthetic subject folder from a parameter set")
     ss.add_argument("out_dir", help="folder to create (must not exist or be empty)")
     ss.add_argument("--model", default="volunteer", help="parameter set with a patella (volunteer)")
-    ss.add_argument("--seed", type=int, default=0, help="random seed (0)")
+    ss.add_argument("--seed", type=seed, default=0, help="random seed (0)")
     ss.add_argument("--frames", type=int, default=60, help="frames of the measured motion, 0-120 deg (60)")
     fp = sub.add_parser("fit", help="fit a subject-specific mechanism to a subject folder")
     fp.add_argument("subject_dir", help="the subject folder (README, 'Subject folders'); never written to")
     fp.add_argument("--out", required=True, help="output folder (parameter files, report, figure, recording)")
-    fp.add_argument("--seed", type=int, default=0, help="seed of the global stage (0); same seed, same result")
+    fp.add_argument("--seed", type=seed, default=0, help="seed of the global stage (0); same seed, same result")
     fp.add_argument("--no-global", action="store_true", help="skip differential evolution (local stage only)")
     fp.add_argument("--quick", action="store_true", help="a small global stage (a first look; not for results)")
     fp.add_argument("--no-recording", action="store_true", help="do not write the Rerun recording")
@@ -123,7 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                          "entries AZ,EL,DIST separated by ';' (oblique)")
     co.add_argument("--methods", default="paper,init,links,kinematics", help="which methods (all four)")
     co.add_argument("--perturb", type=float, default=2.0, help="largest endpoint move of the default prior, mm (2)")
-    co.add_argument("--seed", type=int, default=3, help="seed of the perturbation and the depth noise (3)")
+    co.add_argument("--seed", type=seed, default=3, help="seed of the perturbation and the depth noise (3)")
     co.add_argument("--no-noise", action="store_true", help="no depth noise")
     co.add_argument("--out", default="knee-compare", help="output folder (knee-compare)")
     co.add_argument("--force", action="store_true", help="write into a non-empty output folder")
@@ -142,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     fe.add_argument("--truth", help="parameter set generating the truth (default: MODEL)")
     fe.add_argument("--camera", default="oblique", help="oblique, frontal, lateral or AZ,EL,DIST (oblique)")
     fe.add_argument("--no-noise", action="store_true", help="no depth noise")
-    fe.add_argument("--seed", type=int, default=0, help="seed of the depth noise (0)")
+    fe.add_argument("--seed", type=seed, default=0, help="seed of the depth noise (0)")
     fe.add_argument("--cloud", help="a measured point cloud (.ply/.pcd/.xyz, mm) instead of the virtual camera")
     fe.add_argument("--depth", help="a measured depth image (16-bit PNG or .npy) instead of the virtual camera")
     fe.add_argument("--intrinsics", help="fx,fy,cx,cy of the depth image (pixels)")
