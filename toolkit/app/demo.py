@@ -10,17 +10,25 @@ by :mod:`knee.app.demo_workers`), the mechanism-only estimate in whichever finis
 from __future__ import annotations
 
 import concurrent.futures as cf
+import functools
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
+
 from knee.app.demo_workers import DEMO_METHODS, start_workers
 from knee.app.experiments.cases import CompareRow, MethodResult, case_points, result_row, run_method, truth_phantom
 from knee.app.reports.compare import CompareRecorder, MethodSummary, markdown, plot, summary, write_csv
 from knee.fitting.optimize import perturb_endpoints
+from knee.fitting.subject import load_subject
+from knee.fitting.subject_anatomy import subject_anatomy
+from knee.fitting.synthetic import make_subject
+from knee.models.fem.anatomy import KneeAnatomy
 from knee.models.fem.depth import DepthNoise, default_camera
-from knee.models.fem.scene import build_association_model
+from knee.models.fem.scene import build_knee_model
 from knee.models.mechanism import Mechanism
 from knee.models.mechanism.params import load_model
 
@@ -33,13 +41,31 @@ def demo_case(seed: int, perturb: float) -> tuple[Mechanism, Mechanism]:
     return truth, prior
 
 
+@functools.lru_cache(maxsize=2)
+def _demo_anatomy(seed: int, perturb: float) -> KneeAnatomy:
+    return demo_anatomy(demo_case(seed, perturb)[1])
+
+
+def demo_anatomy(prior: Mechanism) -> KneeAnatomy:
+    """The demo subject's knee: the phantom of `volunteer` written as a subject folder (CT bones, landmarks
+    and skin; :func:`knee.fitting.synthetic.make_subject`, into a temporary folder) and read back as any
+    subject's is (:func:`knee.fitting.subject_anatomy.subject_anatomy`), with the prior's MCL."""
+    with tempfile.TemporaryDirectory(prefix="knee-demo-subject-") as tmp:
+        folder = make_subject(Path(tmp) / "volunteer", model="volunteer", seed=0)
+        return subject_anatomy(load_subject(folder), prior.params)
+
+
 def run_demo_method(method: str, flexion_deg: float, seed: int, perturb: float):
-    """One method on the demo case (run in a worker process); returns (MethodResult, truth TF coordinates)."""
+    """One method on the demo case (run in a worker process); returns (MethodResult, truth TF coordinates,
+    the model's bone faces {bone: (F, 3)}). The model is the demo subject's (:func:`demo_anatomy`, made once
+    per process); the truth's skin is the phantom's envelope posed by the truth, not the subject's skin the
+    model and its prior's flexion estimate use."""
     truth, prior = demo_case(seed, perturb)
     cam = default_camera()
-    model = build_association_model(prior)
+    model = build_knee_model(_demo_anatomy(seed, perturb), prior=prior)
     pts, tf = case_points(truth, flexion_deg, cam, DepthNoise(), seed, model.settings)
-    return run_method(method, truth, prior, flexion_deg, cam, DepthNoise(), seed, points=pts, model=model), tf
+    faces = {b: np.asarray(getattr(model, f"{b}_surface").faces) for b in ("femur", "tibia")}
+    return run_method(method, truth, prior, flexion_deg, cam, DepthNoise(), seed, points=pts, model=model), tf, faces
 
 
 @dataclass
@@ -58,17 +84,17 @@ def collect_demo_comparison(out_dir: Path, futures: dict, flexion_deg: float = 6
     ``compare.csv``, ``compare.md``, ``compare.png`` and ``compare.rrd`` to ``out_dir``; ``log(text)`` hears
     when each method is done. ``t0``: when the workers started (perf_counter), for the wall time."""
     t0 = time.perf_counter() if t0 is None else t0
-    results: dict[str, tuple[MethodResult, object]] = {}
+    results: dict[str, tuple[MethodResult, object, dict]] = {}
     for fut in cf.as_completed(futures):
         m = futures[fut]
         results[m] = fut.result()
         if log:
             log(f"  {m} done after {time.perf_counter() - t0:.1f} s")
-    truth, prior = demo_case(seed, perturb)
-    rec = CompareRecorder(out_dir / "compare.rrd", truth_phantom(truth), truth_phantom(prior), DEMO_METHODS)
+    truth, _ = demo_case(seed, perturb)
+    rec = CompareRecorder(out_dir / "compare.rrd", truth_phantom(truth), results[DEMO_METHODS[0]][2], DEMO_METHODS)
     rows = []
     for m in DEMO_METHODS:
-        r, tf = results[m]
+        r, tf, _ = results[m]
         rec("oblique", flexion_deg, m, r, tf)
         rows.append(result_row("oblique", flexion_deg, r))
     rec.finish()

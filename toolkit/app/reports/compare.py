@@ -183,12 +183,14 @@ class CompareRecorder:
 
     def __init__(self, path, truth_phantom, prior_phantom, methods):
         """``truth_phantom``: the bones of the truth; ``prior_phantom``: those the methods' models are built
-        from (their faces go with the surfaces in the results)."""
+        from (their faces go with the surfaces in the results): a phantom, or the faces themselves,
+        ``{"femur": (F, 3), "tibia": (F, 3)}``."""
         self.rec = R.new_recording()
         R.save(self.rec, path, compare_blueprint(methods))
         self.rec.log("compare", rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
         self.phantom = truth_phantom
-        self.faces = {k: np.asarray(getattr(prior_phantom, k).faces, np.uint32) for k in ("femur", "tibia")}
+        self.faces = {k: np.asarray(prior_phantom[k] if isinstance(prior_phantom, dict) else getattr(prior_phantom, k).faces,
+                                    np.uint32) for k in ("femur", "tibia")}
         self.cases: dict = {}
 
     def __call__(self, cam_name: str, flexion_deg: float, method: str, result: MethodResult, truth_tf) -> None:
