@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 from knee.foundations.errors import KneeInputError
-from knee.foundations.geometry import LONG_BONE, end_width, fit_sphere
+from knee.foundations.geometry import LONG_BONE, end_width, epicondyles, fit_sphere
 
 
 def _axes(up, anterior):
@@ -51,9 +51,9 @@ def femur_landmarks(vertices, up, anterior) -> dict:
     u, a, lat = _axes(up, anterior)
     h = v @ u
     W = end_width(v, h, lat, "low")
+    le, me = epicondyles(v, h, lat, W)
     distal = v[h < h.min() + 0.75 * W]
     s = distal @ lat
-    le, me = distal[s > s.max() - 0.02 * W].mean(axis=0), distal[s < s.min() + 0.02 * W].mean(axis=0)
     mid = 0.5 * (s.max() + s.min())
     lateral_half = distal[s > mid]
     pal = lateral_half[(lateral_half @ a).argmax()]

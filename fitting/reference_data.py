@@ -40,7 +40,6 @@ class RealKnee:
     landmarks: dict
     frames: dict
     annotations: dict = field(default_factory=dict)
-    side: str = "right"
 
 
 def _scene(path: Path) -> dict:

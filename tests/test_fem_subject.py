@@ -116,3 +116,24 @@ def test_compare_on_a_subject_with_a_measured_motion(case, tmp_path):
     assert (out / "compare.png").stat().st_size > 0 and "Subject" in (out / "compare.md").read_text()
     assert_clean_error(run("compare", case["dir"], "--prior", case["tmp"] / "prior.toml", "--out", tmp_path / "x"),
                        "--truth-motion")
+
+
+def test_a_prior_that_does_not_assemble_at_the_scan_is_a_numerical_error(case, tmp_path):
+    """The prior's path is anchored at the CT pose (5 deg here): seed 002's first estimate, which assembles
+    only from 7.3 to 60 deg, cannot be, and says so in one line (exit 3); nothing is written."""
+    out = tmp_path / "o"
+    p = run("fem", case["dir"], "--prior", "volunteer-initial", "--cloud", case["tmp"] / "cloud.ply",
+            "--initial-pose", case["tmp"] / "pose.txt", "--out", out, "--quiet")
+    assert_clean_error(p, "assembly range", code=3)
+    assert not out.exists()
+
+
+def test_fitting_a_subject_without_mri_or_motion_names_what_is_missing(case, tmp_path):
+    import shutil
+
+    d = tmp_path / "ct-only"
+    shutil.copytree(case["dir"], d)
+    shutil.rmtree(d / "mri")
+    (d / "motion.csv").unlink()
+    assert_clean_error(run("fit", d, "--out", tmp_path / "fit"), "no mri/", "and no motion.csv", "the fit needs them")
+    assert not (tmp_path / "fit").exists()

@@ -22,13 +22,14 @@ frame; ``tibia_pose`` (4, 4) takes tibia-frame coordinates to it at the scanned 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 import trimesh
 
 from knee.foundations.conventions import pose_to_joint, transform_points
 from knee.foundations.errors import KneeInputError
-from knee.foundations.geometry import end_width
+from knee.foundations.geometry import end_width, epicondyles
 from knee.foundations.surfaces import SurfaceQuery, clip_to_slab, closed_surface
 
 #: How far (mm) a bone vertex may lie outside the skin before the anatomy is refused.
@@ -71,19 +72,19 @@ class KneeAnatomy:
         """The TF joint coordinates (6,) of the scan (rad, mm)."""
         return pose_to_joint(self.tibia_pose)
 
-    @property
+    @cached_property
     def joint_y(self) -> float:
         """The joint line's height (femur frame, mm): midway between the femur's distal-most point and the
         tibia's highest one."""
         return 0.5 * (float(self.femur.vertices[:, 1].min()) + float(self.tibia.vertices[:, 1].max()))
 
-    @property
+    @cached_property
     def width(self) -> float:
         """The femur's medio-lateral width at its distal end (mm): the knee's size."""
         v = np.asarray(self.femur.vertices)
         return end_width(v, v[:, 1], np.array([0.0, 0.0, 1.0]), "low")
 
-    @property
+    @cached_property
     def thigh_from(self) -> float:
         """Where the thigh region starts (femur frame y, mm; see the module docstring)."""
         top = float(self.skin.vertices[:, 1].max())
@@ -120,9 +121,7 @@ def default_collaterals(anatomy: KneeAnatomy) -> tuple[np.ndarray, np.ndarray]:
     width below the joint line (standing in for the fibular head)."""
     fv, tv = np.asarray(anatomy.femur.vertices), np.asarray(anatomy.tibia.vertices)
     y0, w = anatomy.joint_y, anatomy.width
-    distal = fv[fv[:, 1] < fv[:, 1].min() + 0.75 * w]
-    z = distal[:, 2]
-    le, me = distal[z > z.max() - 0.02 * w].mean(axis=0), distal[z < z.min() + 0.02 * w].mean(axis=0)
+    le, me = epicondyles(fv, fv[:, 1], np.array([0.0, 0.0, 1.0]), w)
 
     def side(depth, sign):
         band = tv[np.abs(tv[:, 1] - (y0 - depth * w)) < 0.05 * w]

@@ -220,10 +220,10 @@ def register_to_model(model: AssociationModel, points, iterations: int = 60) -> 
                              f"mm above the joint line); at least {MIN_THIGH_POINTS} are needed for the registration")
     T_reg, fitness, _ = icp(thigh_seen[::3], thigh_model, max_distance=10.0, iterations=iterations,
                             target_normals=thigh_normals)
-    if fitness < MIN_ICP_FITNESS or np.linalg.norm(T_reg[:3, 3]) > 100.0:
+    if fitness < MIN_ICP_FITNESS:
         # a thigh that is a near-perfect cylinder leaves point-to-plane ICP free to slide along its axis
-        # (measured: 150 m on a synthetic subject's capsule skin): match points to points instead, which
-        # holds the axial position where the cloud came
+        # (measured: 150 m, fitness 0, on a synthetic subject's capsule skin): match points to points,
+        # which holds the axial position where the cloud came
         T_reg, fitness, _ = icp(thigh_seen[::3], thigh_model, max_distance=10.0, iterations=iterations,
                                 point_to_point=True)
     if fitness < MIN_ICP_FITNESS:

@@ -16,7 +16,11 @@ from knee.foundations.errors import EXIT_BAD_INPUT, KneeInputError
 
 
 def error(message: str, code: int = EXIT_BAD_INPUT) -> int:
-    """Print ``knee: error: message`` (one line) on standard error; returns ``code``."""
+    """Print ``knee: error: message`` (one line) on standard error, on a line of its own even when a
+    progress bar was interrupted mid-line; returns ``code``."""
+    if ProgressBar.open_line:
+        sys.stderr.write("\n")
+        ProgressBar.open_line = False
     print(f"knee: error: {' '.join(str(message).split())}", file=sys.stderr)
     return code
 
@@ -75,6 +79,9 @@ class ProgressBar:
     """A one-line progress bar on standard error: ``[######....]  45%  text``; call it with the fraction
     done and a short text."""
 
+    #: Whether a bar has left its line unfinished (an error then starts a new line).
+    open_line = False
+
     def __init__(self, width: int = 30, stream=None):
         self.width = width
         self.stream = stream or sys.stderr
@@ -86,6 +93,7 @@ class ProgressBar:
         line = f"[{'#' * k}{'.' * (self.width - k)}] {100 * f:3.0f}%  {text}"
         pad = max(len(self.last) - len(line), 0)
         self.stream.write("\r" + line + " " * pad)
+        ProgressBar.open_line = f < 1.0
         if f >= 1.0:
             self.stream.write("\n")
         self.stream.flush()

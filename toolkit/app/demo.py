@@ -59,7 +59,8 @@ def run_demo_method(method: str, flexion_deg: float, seed: int, perturb: float):
     """One method on the demo case (run in a worker process); returns (MethodResult, truth TF coordinates,
     the model's bone faces {bone: (F, 3)}). The model is the demo subject's (:func:`demo_anatomy`, made once
     per process); the truth's skin is the phantom's envelope posed by the truth, not the subject's skin the
-    model and its prior's flexion estimate use."""
+    model and its prior's flexion estimate use (though both come from the phantom's envelope, at two
+    poses)."""
     truth, prior = demo_case(seed, perturb)
     cam = default_camera()
     model = build_knee_model(_demo_anatomy(seed, perturb), prior=prior)

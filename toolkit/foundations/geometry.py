@@ -138,6 +138,18 @@ def least_varying_pair(a_points, b_points, poses, chunk: int = 256):
 LONG_BONE = 3.0
 
 
+def epicondyles(vertices, heights, lateral, width: float) -> tuple[np.ndarray, np.ndarray]:
+    """The lateral and medial epicondyles (3,) of a femur's surface: among the vertices (V, 3) within
+    0.75 ``width`` above the distal-most one (``heights`` (V,) along the proximal axis), the centroids of
+    those within 2 % of ``width`` of the most lateral and of the most medial along ``lateral`` (3,) (a
+    flat side has no single extreme vertex)."""
+    v = np.asarray(vertices, float)
+    h = np.asarray(heights, float)
+    distal = v[h < h.min() + 0.75 * width]
+    s = distal @ np.asarray(lateral, float)
+    return distal[s > s.max() - 0.02 * width].mean(axis=0), distal[s < s.min() + 0.02 * width].mean(axis=0)
+
+
 def end_width(vertices, heights, lateral, end: str) -> float:
     """The medio-lateral width (mm) of a bone at one end: the extent along ``lateral`` (3,) of the
     vertices (V, 3) within a tenth of the bone's length from its ``end`` (``"low"`` or ``"high"`` of

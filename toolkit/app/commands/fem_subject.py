@@ -102,7 +102,8 @@ def run(args) -> int:
     t0 = time.perf_counter()
     anatomy = subject_anatomy(subject, prior.params)
     model = build_knee_model(anatomy, prior=prior)
-    T_ct_model = anatomical_frames(subject)["femur"]  # model (femur frame) -> CT
+    frames = anatomical_frames(subject)
+    T_ct_model = frames["femur"]  # model (femur frame) -> CT
     built = time.perf_counter() - t0
     say(f"  grid {len(model.grid.cells)} cells, bones {len(model.femur.el.cells)} + {len(model.tibia.el.cells)} "
         f"tetrahedra; {built:.1f} s")
@@ -130,7 +131,7 @@ def run(args) -> int:
     T_cam_world = invert_poses(rough.T_model_world)
     poses = {b: T_cam_world @ recon.bone_pose(b, getattr(model, b).el.X) @ invert_poses(T_ct_model)
              for b in ("femur", "tibia")}
-    tf_pose = invert_poses(T_ct_model) @ invert_poses(poses["femur"]) @ poses["tibia"] @ anatomical_frames(subject)["tibia"]
+    tf_pose = invert_poses(T_ct_model) @ invert_poses(poses["femur"]) @ poses["tibia"] @ frames["tibia"]
     tf = pose_to_joint(tf_pose)
     result = {
         "subject": subject.name, "method": recon.method, "prior": str(args.prior),
