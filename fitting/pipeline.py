@@ -80,6 +80,11 @@ class Alignment:
     fre: dict
 
 
+#: MRI-to-CT fiducial registration error above which the alignment is refused (RMS, mm): picking error
+#: is 1-2 mm; a swapped or misplaced fiducial gives tens.
+MAX_FIDUCIAL_RMS_MM = 5.0
+
+
 def align_mri(subject: Subject) -> dict[str, Alignment]:
     """Per bone, its :class:`Alignment` from the paired fiducials (least squares)."""
     out = {}
@@ -87,6 +92,12 @@ def align_mri(subject: Subject) -> dict[str, Alignment]:
     for b in bones:
         labels = FIDUCIALS[b]
         T, fre = rigid_register(subject.mri_landmarks.require(labels), subject.ct_landmarks.require(labels))
+        rms = float(np.sqrt(np.mean(np.square(fre))))
+        if rms > MAX_FIDUCIAL_RMS_MM:
+            k = int(np.argmax(fre))
+            raise KneeInputError(f"the {b}'s MRI and CT fiducials do not match: registration error RMS {rms:.1f} mm "
+                                 f"(at most {MAX_FIDUCIAL_RMS_MM:g}; worst {labels[k]} {fre[k]:.1f} mm): a mislabelled "
+                                 f"or misplaced fiducial in {subject.root / 'mri'} or {subject.root / 'ct'}")
         out[b] = Alignment(T, dict(zip(labels, (float(v) for v in fre))))
     return out
 

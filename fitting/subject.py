@@ -42,6 +42,7 @@ All geometry is returned in LPS (mm) of its scan; a left knee is mirrored (LPS x
 from __future__ import annotations
 
 import json
+import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,6 +52,7 @@ import trimesh
 
 from knee.fitting.frames import FIDUCIALS, LANDMARKS
 from knee.foundations.errors import KneeInputError
+from knee.foundations.files import read_text
 from knee.foundations.imaging import (
     Markups,
     MotionFile,
@@ -59,7 +61,7 @@ from knee.foundations.imaging import (
     read_motion_csv,
     read_surface,
 )
-from knee.foundations.surfaces import closed_surface
+from knee.foundations.surfaces import SurfaceQuery, closed_surface
 
 FORMAT_NAME = "knee-subject"
 LIGAMENTS = ("acl", "pcl", "mcl")
@@ -124,14 +126,18 @@ class Subject:
         lab = folder / "labels" / f"{bone}.json"
         if lab.is_file():
             try:
-                idx = json.loads(lab.read_text(encoding="utf-8")).get(name)
-            except (json.JSONDecodeError, AttributeError) as e:
-                raise KneeInputError(f"{lab}: not a JSON object of vertex-index lists ({e})") from None
+                doc = json.loads(read_text(lab, "labels file"))
+            except json.JSONDecodeError as e:
+                raise KneeInputError(f"{lab}: not JSON ({e})") from None
+            if not isinstance(doc, dict):
+                raise KneeInputError(f"{lab}: must be a JSON object {{\"<region>\": [vertex indices]}}, got a "
+                                     f"{type(doc).__name__}")
+            idx = doc.get(name)
             if idx is not None:
                 surf = (self.mri if space == "mri" else self.ct).get(bone)
                 if surf is None:
                     raise KneeInputError(f"{lab}: labels given but there is no {space} {bone} surface")
-                idx = np.asarray(idx, dtype=int)
+                idx = _indices(idx, f"{lab}: {name}")
                 if idx.size == 0 or idx.min() < 0 or idx.max() >= len(surf.vertices):
                     raise KneeInputError(f"{lab}: {name} has vertex indices outside 0..{len(surf.vertices) - 1}")
                 return Area(name, surf.vertices[idx], [name] * idx.size, f"{lab}:{name}")
@@ -142,6 +148,18 @@ class Subject:
         if self.side == "left":
             p[..., 0] *= -1.0
         return p
+
+
+def _indices(values, where: str) -> np.ndarray:
+    """A list of whole vertex indices; one line naming ``where`` otherwise (no silent truncation)."""
+    if not isinstance(values, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                               for v in values):
+        raise KneeInputError(f"{where} must be a list of vertex indices (whole numbers), got {str(values)[:60]}")
+    a = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(a)) or np.any(a != np.round(a)):
+        bad = a[~np.isfinite(a) | (a != np.round(a))][0]
+        raise KneeInputError(f"{where}: vertex indices must be whole numbers, got {bad:g}")
+    return a.astype(int)
 
 
 def _mirror_mesh(m: trimesh.Trimesh) -> trimesh.Trimesh:
@@ -156,8 +174,8 @@ def _read_options(root: Path) -> dict:
     if not f.is_file():
         raise KneeInputError(f"{root} is not a subject folder: {f} not found")
     try:
-        d = tomllib.loads(f.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        d = tomllib.loads(read_text(f, "subject file"))
+    except tomllib.TOMLDecodeError as e:
         raise KneeInputError(f"{f}: not valid TOML ({e})") from None
     if d.get("format") != FORMAT_NAME:
         raise KneeInputError(f"{f}: field 'format' must be \"{FORMAT_NAME}\", got {d.get('format')!r}")
@@ -167,7 +185,60 @@ def _read_options(root: Path) -> dict:
     if side not in ("right", "left"):
         raise KneeInputError(f"{f}: side must be \"right\" or \"left\", got {side!r}")
     d["side"] = side
+    if "name" in d and (not isinstance(d["name"], str) or not d["name"].strip()):
+        raise KneeInputError(f"{f}: field 'name' must be a non-empty string, got {d['name']!r}")
+    for table in ("pf", "bundles"):
+        if table in d and not isinstance(d[table], dict):
+            raise KneeInputError(f"{f}: '{table}' must be a table ([{table}]), got {d[table]!r}")
+    pf = d.get("pf", {})
+    if "project_tendon" in pf and not isinstance(pf["project_tendon"], bool):
+        raise KneeInputError(f"{f}: [pf] project_tendon must be true or false (no quotes), got "
+                             f"{pf['project_tendon']!r}")
+    ref = pf.get("reference_flexion_deg")
+    if ref is not None and (isinstance(ref, bool) or not isinstance(ref, (int, float)) or not math.isfinite(ref)):
+        raise KneeInputError(f"{f}: [pf] reference_flexion_deg must be a number of degrees, got {ref!r}")
+    unknown = sorted(set(pf) - {"project_tendon", "reference_flexion_deg"})
+    if unknown:
+        raise KneeInputError(f"{f}: unknown field(s) in [pf]: {', '.join(unknown)} (known: reference_flexion_deg, "
+                             "project_tendon)")
     return d
+
+
+#: A fiducial (a point picked on the bone) farther than this from its bone's surface is refused (mm):
+#: picking error and cartilage are a few mm (the synthetic subject's schematic bones, up to 9.3 mm);
+#: a wrong space, unit or bone is tens to hundreds.
+LANDMARK_TOLERANCE_MM = 15.0
+
+
+def check_landmarks_on_bones(landmarks: Markups, surfaces: dict, folder: Path, side: str) -> None:
+    """Refuse landmarks that do not lie on their bones: the fiducials of each bone (``FIDUCIALS``, picked on
+    the bone surface) within :data:`LANDMARK_TOLERANCE_MM` of it. The message says what it looks like: a
+    file in metres, a wrong ``coordinateSystem`` or ``SPACE`` (x and y negated), or a misplaced point."""
+    where = landmarks.path or folder / "landmarks.mrk.json"
+    pts = landmarks.points
+    if len(pts) and float(np.ptp(pts, axis=0).max()) < 1.0 and any(
+            float(np.ptp(m.vertices, axis=0).max()) > 10.0 for m in surfaces.values()):
+        raise KneeInputError(f"{where}: the landmarks span only {float(np.ptp(pts, axis=0).max()):.3g} units while the "
+                             "surfaces span tens of mm: the landmarks look like metres; they must be in mm")
+    for bone, labels in FIDUCIALS.items():
+        if bone not in surfaces or not all(lb in landmarks.labels for lb in labels):
+            continue
+        q = SurfaceQuery.of(surfaces[bone])
+        p = landmarks.require(labels)
+        d = np.abs(q.signed_distance(p))
+        if d.max() <= LANDMARK_TOLERANCE_MM:
+            continue
+        k = int(np.argmax(d))
+        surf = f"{folder / bone}.*"
+        negate = np.array([-1.0, -1.0, 1.0])
+        flipped = np.abs(q.signed_distance(p * negate)).max() <= LANDMARK_TOLERANCE_MM
+        if side == "left" and not flipped:  # the mirror of a left knee already negated x
+            flipped = np.abs(q.signed_distance(p * np.array([1.0, -1.0, 1.0]))).max() <= LANDMARK_TOLERANCE_MM
+        if flipped:
+            raise KneeInputError(f"{where}: the {bone} landmarks lie on {surf} only with x and y negated: the "
+                                 f"landmarks' coordinateSystem or the surface's SPACE comment is wrong (LPS vs RAS)")
+        raise KneeInputError(f"{where}: landmark {labels[k]} is {d[k]:.1f} mm from the {bone} surface {surf} (at "
+                             f"most {LANDMARK_TOLERANCE_MM:g} mm): picked in another space or on another bone?")
 
 
 def load_subject(root) -> Subject:
@@ -209,14 +280,15 @@ def load_subject(root) -> Subject:
         ct_lm.require(LANDMARKS[bone])
         if has_mri:
             mri_lm.require(FIDUCIALS[bone])
+    check_landmarks_on_bones(ct_lm, ct, root / "ct", side)
+    if has_mri:
+        check_landmarks_on_bones(mri_lm, mri, root / "mri", side)
     motion = read_motion_csv(root / "motion.csv", side) if (root / "motion.csv").exists() else None
     pf_opt = opt.get("pf", {}) or {}
     has_pf = ("patella" in ct and motion is not None and motion.pf is not None
               and all(k in ct_lm.labels for k in LANDMARKS["patella"])
               and all(k in mri_lm.labels for k in FIDUCIALS["patella"]))
     ref = pf_opt.get("reference_flexion_deg")
-    if ref is not None and not isinstance(ref, (int, float)):
-        raise KneeInputError(f"{root / 'subject.toml'}: [pf] reference_flexion_deg must be a number")
     bundles = opt.get("bundles", {}) or {}
     for k, v in bundles.items():
         if k not in LIGAMENTS or not isinstance(v, str):

@@ -34,6 +34,7 @@ import trimesh
 from scipy.optimize import brentq
 
 from knee.foundations.errors import KneeInputError
+from knee.models.mechanism.params import require_condylar_contacts
 from knee.models.mechanism.solver import Mechanism
 from knee.models.statics import StaticsResult, solve_statics
 
@@ -240,9 +241,14 @@ def foundation_maps(forces, r_femur, r_tibia, surface, cartilage: Cartilage = CA
     mesh = mesh if mesh is not None else condyle_cap(r_femur, subdivisions=5)
     F = np.maximum(np.asarray(forces, float), 0.0)
     c, A = mesh.triangles_center, mesh.area_faces
-    dl = np.linspace(0.0, 0.15 * r_femur, n_table)
-    d, nrm = _tibial_depth(c, r_femur, r_tibia, surface, dl)
-    table = ((cartilage.foundation_modulus * np.maximum(d, 0.0) * A) * nrm[..., 2]).sum(axis=1)
+    reach = 0.15 * r_femur
+    while True:  # the table reaches the largest load (deeper approaches for larger loads, as foundation())
+        dl = np.linspace(0.0, reach, n_table)
+        d, nrm = _tibial_depth(c, r_femur, r_tibia, surface, dl)
+        table = ((cartilage.foundation_modulus * np.maximum(d, 0.0) * A) * nrm[..., 2]).sum(axis=1)
+        if not F.size or F.max() <= table[-1] or reach >= 0.5 * r_femur:
+            break
+        reach = min(2.0 * reach, 0.5 * r_femur)
     if F.size and F.max() > table[-1]:
         raise KneeInputError(f"elastic foundation: {F.max():.0f} N exceeds what the articular mesh carries "
                              f"({table[-1]:.0f} N)")
@@ -264,6 +270,7 @@ class ContactSeries:
 def contact_loads(params, statics, cartilage: Cartilage = CARTILAGE, foundation: bool = True) -> dict[str, ContactSeries]:
     """Per condylar contact of ``params`` (by link name), its :class:`ContactSeries` from a statics result:
     the compressive force, Hertz, and (with ``foundation``) :func:`foundation_maps`."""
+    require_condylar_contacts(params, "contact mechanics")
     out = {}
     for lk in params.links:
         if lk.role != "contact":

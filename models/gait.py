@@ -42,6 +42,7 @@ import pinocchio as pin
 
 from knee.foundations.conventions import joint_to_pose
 from knee.foundations.errors import AssemblyError, KneeInputError
+from knee.foundations.files import read_text
 from knee.models.contact import CARTILAGE, Cartilage, contact_loads
 from knee.models.mechanism.solver import Mechanism
 from knee.models.statics import StaticsResult, solve_statics
@@ -49,6 +50,9 @@ from knee.models.statics import StaticsResult, solve_statics
 G = 9.81
 REQUIRED = ("time_s", "hip_flexion_deg", "knee_flexion_deg", "ankle_dorsiflexion_deg")
 GRF_COLUMNS = ("grf_anterior", "grf_vertical", "grf_lateral")
+#: A gait trial sampled this far apart (median, s) has its time in milliseconds: gait is sampled at 50 Hz
+#: or more.
+MAX_SAMPLE_INTERVAL_S = 0.5
 
 
 @dataclass
@@ -73,11 +77,9 @@ def read_gait_csv(path, mass: float) -> GaitTrial:
     ``hip_rotation_deg``; the GRF as ``grf_{anterior,vertical,lateral}_N`` or ``..._bw`` (body weights,
     scaled by ``mass``); ``cop_anterior_mm``. Time must increase strictly."""
     path = Path(path)
-    if not path.is_file():
-        raise KneeInputError(f"gait file {path} not found")
     if not (mass > 0 and math.isfinite(mass)):
         raise KneeInputError(f"the body mass must be a positive number of kg, got {mass}")
-    lines = [ln for ln in path.read_text(encoding="utf-8").splitlines() if ln.strip() and not ln.startswith("#")]
+    lines = [ln for ln in read_text(path, "gait file").splitlines() if ln.strip() and not ln.startswith("#")]
     if not lines:
         raise KneeInputError(f"{path}: empty gait file")
     rows = list(csv.reader(lines))
@@ -104,6 +106,16 @@ def read_gait_csv(path, mass: float) -> GaitTrial:
     if np.any(np.diff(t) <= 0):
         k = int(np.nonzero(np.diff(t) <= 0)[0][0])
         raise KneeInputError(f"{path}: time is not increasing at row {k + 2} ({t[k]:g} then {t[k + 1]:g} s)")
+    step = float(np.median(np.diff(t)))
+    if step >= MAX_SAMPLE_INTERVAL_S:
+        raise KneeInputError(f"{path}: column time_s has samples {step:g} s apart (a {t[-1] - t[0]:g} s trial): it "
+                             f"looks like milliseconds; give the time in seconds")
+    for name in ("hip_adduction_deg", "hip_rotation_deg") + tuple(f"{b}_{u}" for b in GRF_COLUMNS for u in ("N", "bw")):
+        v = col(name)
+        if v is not None and not np.all(np.isfinite(v)):
+            bad = np.nonzero(~np.isfinite(v))[0] + 2
+            raise KneeInputError(f"{path}: column {name} has {bad.size} missing or non-finite values (rows "
+                                 f"{bad[0]}-{bad[-1]}); give 0 where there is no ground contact")
     grf = np.zeros((len(t), 3))
     for j, base in enumerate(GRF_COLUMNS):
         if f"{base}_N" in header:
@@ -112,10 +124,9 @@ def read_gait_csv(path, mass: float) -> GaitTrial:
             grf[:, j] = col(f"{base}_bw") * mass * G
         elif base != "grf_lateral":
             raise KneeInputError(f"{path}: missing column {base}_N (or {base}_bw)")
-    grf = np.nan_to_num(grf)
     hip = np.column_stack([col("hip_flexion_deg"), col("hip_adduction_deg", 0.0), col("hip_rotation_deg", 0.0)])
     cop = col("cop_anterior_mm", np.nan)
-    return GaitTrial(time=t, hip=np.radians(np.nan_to_num(hip)), knee=np.radians(col("knee_flexion_deg")),
+    return GaitTrial(time=t, hip=np.radians(hip), knee=np.radians(col("knee_flexion_deg")),
                      ankle=np.radians(col("ankle_dorsiflexion_deg")), grf=grf, cop=cop, source=str(path))
 
 
@@ -303,6 +314,24 @@ class GaitResult:
     pf: np.ndarray = None
     flags: list = field(default_factory=list)
     seconds: float = 0.0
+
+    @property
+    def valid(self) -> np.ndarray:
+        """(n,) bool: the frames whose member forces all have their physical sign (no statics flag). In a
+        flagged frame a ligament would push or a contact pull: its forces and pressures are not valid."""
+        return np.array([not f for f in self.statics.flags], dtype=bool)
+
+    @property
+    def flagged_note(self) -> str:
+        """One line for the top of a report: how many frames are flagged and what that means ('' if none)."""
+        n, k = self.valid.size, int((~self.valid).sum())
+        if k == 0:
+            return ""
+        return (f"{k} of {n} frames are flagged: a ligament would have to push or a contact to pull (the 1-DoF "
+                f"mechanism's statics is determinate, so it cannot share the load otherwise); the forces and "
+                f"pressures of those frames are not physically valid" + (
+                    " - every frame is flagged, so no contact figure of this run is valid" if k == n else
+                    "; summaries use the other frames only"))
 
 
 def _rates(t, x):

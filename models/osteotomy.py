@@ -324,22 +324,33 @@ def compare(res: OsteotomyResult, trial: GaitTrial, height: float = 1.75, mass: 
 
 @dataclass(frozen=True)
 class ContactSummary:
-    """One contact over a gait cycle: its peak force (N), Hertz and elastic-foundation peak pressures
-    (MPa; the latter None when not computed) and its mean share of the total contact force in stance."""
+    """One contact over a gait cycle's valid frames (no statics flag, :attr:`GaitResult.valid`): its peak
+    force (N), Hertz and elastic-foundation peak pressures (MPa; the latter None when not computed), its
+    mean share of the total contact force in stance, and how many frames these come from (``frames``, of
+    ``of``). With no valid frame every figure is NaN: nothing is presented from flagged frames."""
 
     peak_force_N: float
     hertz_peak_MPa: float
     foundation_peak_MPa: float | None
     mean_share: float
+    frames: int = 0
+    of: int = 0
 
 
 def gait_contact_summary(g: GaitResult) -> dict[str, ContactSummary]:
-    """Per contact, its :class:`ContactSummary` over the gait cycle ``g``."""
+    """Per contact, its :class:`ContactSummary` over the valid frames of the gait cycle ``g``."""
     out = {}
+    ok = g.valid
     total = sum(e.force for e in g.contact.values())
-    stance = total > 0
+    stance = (total > 0) & ok
+    nan = float("nan")
+
+    def peak(v):
+        return float(v[ok].max()) if ok.any() else nan
+
     for name, e in g.contact.items():
-        share = float(np.mean(e.force[stance] / total[stance])) if stance.any() else float("nan")
-        out[name] = ContactSummary(float(e.force.max()), float(e.hertz.peak.max()),
-                                   float(e.foundation.peak.max()) if e.foundation is not None else None, share)
+        share = float(np.mean(e.force[stance] / total[stance])) if stance.any() else nan
+        out[name] = ContactSummary(peak(e.force), peak(e.hertz.peak),
+                                   peak(e.foundation.peak) if e.foundation is not None else None, share,
+                                   int(ok.sum()), int(ok.size))
     return out

@@ -24,7 +24,7 @@ import numpy as np
 import trimesh
 
 from knee.foundations.conventions import joint_to_pose
-from knee.models.mechanism.params import MechanismParams
+from knee.models.mechanism.params import MechanismParams, require_condylar_contacts
 
 DEFAULT_CONDYLE_RADIUS = 22.0
 FACET_RADIUS = 17.0  # horizontal radius of a tibial facet (mm)
@@ -123,9 +123,8 @@ def build_phantom(params: MechanismParams, shaft_length: float = 160.0, cartilag
     c = float(cartilage)
     if not 0.0 <= c < 10.0:
         raise ValueError(f"cartilage thickness must be in [0, 10) mm, got {cartilage}")
+    require_condylar_contacts(params, "the bone phantom")
     contacts = [lk for lk in params.links if lk.role == "contact"]
-    if len(contacts) < 2:
-        raise ValueError("a phantom needs the two condylar contact links")
     up = np.array([0.0, 1.0, 0.0])
 
     # ---- femur

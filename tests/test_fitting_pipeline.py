@@ -326,7 +326,7 @@ def test_nan_rows_are_skipped_and_counted_in_the_report(subject_dir, tmp_path):
     assert any("1 of 60 motion rows skipped" in w for w in o.warnings)
     with pytest.raises(KneeInputError, match="not empty"):
         run_fit(d, tmp_path / "out")
-    with pytest.raises(KneeInputError, match="inside the subject folder"):
+    with pytest.raises(KneeInputError, match="is also an input"):
         run_fit(d, d / "results")
 
 

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from knee.foundations.conventions import joint_to_pose
+from knee.foundations.conventions import joint_to_pose, pose_to_joint
 from knee.foundations.errors import AssemblyError
 from knee.models.mechanism import Mechanism, compiled, load_model
 from knee.models.mechanism import reference as ref
@@ -286,3 +286,44 @@ def test_sweeps_on_the_two_branches_never_mix(volunteer):
         others = [m for m in modes if np.abs(m - res.tf[k, 1:]).max() > 1e-6]
         assert others, "expected the second branch"
         assert min(np.abs(m - res.tf[k, 1:]).max() for m in others) > 1e-3
+
+
+@pytest.mark.parametrize("name,deg", [("volunteer", 90.0), ("volunteer", 120.0), ("generic-sancisi2017", 120.0)])
+def test_assembly_modes_belong_to_the_requested_flexion(name, deg):
+    """Multi-start Newton can converge past |beta| = 90 deg, to a pose whose joint coordinates are those of
+    flexion alpha +- 180 deg (found at these angles with 2000 starts): such poses are not modes at alpha."""
+    m = Mechanism.from_name(name)
+    a = DEG(deg)
+    modes = m.assembly_modes(a, n_starts=2000)
+    assert bool(modes) == m.in_range(a)  # generic-sancisi2017 has no pose at 120 deg: only the spurious ones
+    if not modes:
+        return
+    q = np.column_stack([np.full(len(modes), a), np.array(modes)])
+    back = pose_to_joint(joint_to_pose(q))
+    np.testing.assert_allclose(back, q, atol=1e-9)
+    for mode in modes:
+        assert np.abs(ref.tf_residuals(m.params, mode, a)).max() < 1e-9
+
+
+def test_the_solver_cache_loads_only_what_it_can_trust(tmp_path, monkeypatch):
+    """A cached library is loaded only from a folder no one else can write to and only when it matches the
+    SHA-256 recorded when it was compiled: a corrupt one is compiled again, a shared folder not used."""
+    import hashlib
+
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("KNEE_CACHE_DIR", str(cache))
+    p = load_model("volunteer")
+    b = compiled.new_backend(p.kinds, p.has_pf, compile=True)
+    assert b.library.parent == cache and (cache.stat().st_mode & 0o777) == 0o700
+    good = b.library.read_bytes()
+    assert b.library.with_name(b.library.name + ".sha256").read_text().strip() == hashlib.sha256(good).hexdigest()
+    part = cache / "replacement"
+    part.write_bytes(good[: len(good) // 2])
+    part.replace(b.library)  # a truncated (or replaced) library (a new file: the loaded one is left alone)
+    again = compiled.new_backend(p.kinds, p.has_pf, compile=True)
+    assert again.library == b.library and again.library.read_bytes() == good  # compiled again, not loaded
+    cache.chmod(0o777)  # a folder others can write to
+    shared = compiled.new_backend(p.kinds, p.has_pf, compile=True)
+    assert shared.compiled and shared.library.parent != cache
+    res = Mechanism(p, compile=True).sweep(DEG(np.arange(0, 31, 5.0)))
+    assert res.complete

@@ -80,8 +80,12 @@ def test_opening_wedge_moves_the_weight_bearing_line_laterally(vol):
 
 
 def test_the_lateral_share_of_stance_contact_follows_the_weight_bearing_line(vol):
-    """The README's example: the 5 deg opening wedge moves the lateral share of the stance contact force in
-    the normative gait from 0.45 to 0.64 (pinned), the two shares summing to one."""
+    """The 5 deg opening wedge moves the lateral share of the stance contact force in the normative gait
+    from 0.45 to 0.64 (pinned), the two shares summing to one - counted over every frame. But every frame of
+    that gait is flagged on the volunteer (a member loaded the wrong way), so the summary presents none of
+    it: no figure from flagged frames."""
+    import dataclasses
+
     from knee.models.gait import normative_trial
     from knee.models.osteotomy import compare, gait_contact_summary
 
@@ -89,9 +93,25 @@ def test_the_lateral_share_of_stance_contact_follows_the_weight_bearing_line(vol
     res = osteotomy(p, default_cut("tibia", ph.tibia, 5.0), release=("mcl",))
     cmp = compare(res, normative_trial(72.0))
     before, after = gait_contact_summary(cmp.gait_before), gait_contact_summary(cmp.gait_after)
+    assert not cmp.gait_before.valid.any() and "every frame is flagged" in cmp.gait_before.flagged_note
+    assert before["lc"].frames == 0 and before["lc"].of == 101
+    assert all(math.isnan(v) for v in (before["lc"].mean_share, before["lc"].peak_force_N, after["mc"].mean_share))
+
+    def unflagged(g):
+        return dataclasses.replace(g, statics=dataclasses.replace(g.statics, flags=[[] for _ in g.statics.flags]))
+
+    before = gait_contact_summary(unflagged(cmp.gait_before))
+    after = gait_contact_summary(unflagged(cmp.gait_after))
     assert before["lc"].mean_share == pytest.approx(0.450, abs=0.005)
     assert after["lc"].mean_share == pytest.approx(0.638, abs=0.005)
     assert before["lc"].mean_share + before["mc"].mean_share == pytest.approx(1.0)
+    # half the frames flagged: the summary is over the other half only
+    g = cmp.gait_before
+    half = dataclasses.replace(g, statics=dataclasses.replace(g.statics, flags=[
+        (["x"] if k % 2 else []) for k in range(len(g.statics.flags))]))
+    s = gait_contact_summary(half)["lc"]
+    ok = np.arange(len(g.statics.flags)) % 2 == 0
+    assert s.frames == ok.sum() and s.peak_force_N == pytest.approx(g.contact["lc"].force[ok].max())
 
 
 def test_bad_cuts_are_clear_errors(vol):
@@ -123,3 +143,24 @@ def test_cli_osteotomy(tmp_path):
     r = subprocess.run(knee + ["--angle", "5", "--plane", "0,-400,0,0,1", "--out", str(tmp_path / "p")],
                        capture_output=True, text=True)
     assert r.returncode == 2 and "six comma-separated" in r.stderr and not (tmp_path / "p").exists()
+
+
+@pytest.mark.parametrize("angle", [8.0, 15.0])
+def test_clinical_wedges_are_covered_by_the_contact_model(vol, angle):
+    """Clinical opening wedges are 5-15 deg: with the MCL released, the 8 and 15 deg wedges load a condyle
+    with 3.4-4.9 kN in the normative gait (the elastic foundation's table used to stop at 3.2 kN and the
+    whole osteotomy failed). The foundation's net force at each frame's approach equals its load."""
+    from knee.models.contact import foundation_force
+    from knee.models.gait import normative_trial
+    from knee.models.osteotomy import compare
+
+    p, ph = vol
+    res = osteotomy(p, default_cut("tibia", ph.tibia, angle), release=("mcl",))
+    cmp = compare(res, normative_trial(72.0))
+    lk = res.after.params.link("lc")
+    e = cmp.gait_after.contact["lc"]
+    k = int(np.argmax(e.force))
+    assert e.force[k] > 3300.0
+    net, _ = foundation_force(e.foundation.cap, lk.femur_radius, lk.tibia_radius, lk.tibia_surface,
+                              e.foundation.approach[k])
+    assert net[2] == pytest.approx(e.force[k], rel=2e-3)

@@ -5,7 +5,9 @@ solve) depend only on the *structure* of the mechanism: the kinds of its five li
 a patella. For each structure the C code is generated once, compiled with the system C compiler
 (``$CC`` or ``cc``/``gcc``) into a shared library, and cached on disk under
 ``$KNEE_CACHE_DIR`` (default ``~/.cache/knee-toolkit``), keyed by a hash of the generated source and the
-compiler flags. The library is called through ``ctypes`` with preallocated buffers, which keeps the
+compiler flags. A cached library is loaded only from a folder that belongs to the user and that no one
+else can write to, and only when it matches the SHA-256 recorded beside it when it was compiled;
+otherwise it is compiled again (into a private temporary folder when the cache folder is not safe). The library is called through ``ctypes`` with preallocated buffers, which keeps the
 per-call overhead to a microsecond or two.
 
 When no C compiler is found, or compiling fails, the same functions run through CasADi's own virtual
@@ -186,6 +188,29 @@ def new_backend(kinds, has_pf, compile: bool | None = None) -> Backend:
     return Backend(_Shared(tuple(kinds), bool(has_pf), compile))
 
 
+def _unsafe(folder: Path) -> str:
+    """Why a cache folder cannot be trusted ('' when it can): it must belong to this user (or root) and be
+    writable by no one else, or another user could put a library there that this process would load."""
+    st = folder.stat()
+    if st.st_uid not in (os.getuid(), 0):
+        return f"it belongs to another user (uid {st.st_uid})"
+    if st.st_mode & 0o022:
+        return f"it is writable by others (mode {st.st_mode & 0o777:o})"
+    return ""
+
+
+def _verified(so: Path) -> bool:
+    """Whether a cached library matches the SHA-256 recorded when it was compiled (a truncated, corrupt or
+    replaced file is compiled again), and is not writable by others."""
+    side = so.with_name(so.name + ".sha256")
+    try:
+        if so.stat().st_mode & 0o022 or _unsafe(so):
+            return False
+        return side.read_text().strip() == hashlib.sha256(so.read_bytes()).hexdigest()
+    except OSError:
+        return False
+
+
 def _compiled_library(funcs: dict[str, ca.Function]) -> Path | None:
     cc = find_compiler()
     if cc is None:
@@ -202,17 +227,27 @@ def _compiled_library(funcs: dict[str, ca.Function]) -> Path | None:
                              + ca.__version__.encode()).hexdigest()[:20]
         d = cache_dir()
         so = d / f"knee_mech_{key}.so"
-        if so.is_file():
+        d.mkdir(mode=0o700, parents=True, exist_ok=True)
+        unsafe = _unsafe(d)
+        if unsafe:
+            # a library others could have replaced is never loaded: compile into a private folder instead
+            log.warning("not using the solver cache %s: %s; compiling into a private folder", d, unsafe)
+            d = Path(tempfile.mkdtemp(prefix="knee-private-cache-"))
+            so = d / so.name
+        elif so.is_file() and _verified(so):
             return so
-        d.mkdir(parents=True, exist_ok=True)
         out = Path(tmp) / "lib.so"
         proc = subprocess.run([cc, *CFLAGS, str(src), "-o", str(out), "-lm"], capture_output=True,
                               text=True, timeout=600)
         if proc.returncode != 0:
             raise RuntimeError(f"{cc} failed: {proc.stderr.strip().splitlines()[-1:]}")
-        fd, part = tempfile.mkstemp(dir=d, suffix=".part")
-        os.close(fd)
-        shutil.copyfile(out, part)
-        os.replace(part, so)  # atomic: concurrent processes never load a half-written library
+        digest = hashlib.sha256(out.read_bytes()).hexdigest()
+        for target, write in ((so.with_name(so.name + ".sha256"), lambda p: Path(p).write_text(digest + "\n")),
+                              (so, lambda p: shutil.copyfile(out, p))):
+            fd, part = tempfile.mkstemp(dir=d, suffix=".part")
+            os.close(fd)
+            write(part)
+            os.chmod(part, 0o600 if target != so else 0o700)
+            os.replace(part, target)  # atomic: concurrent processes never load a half-written library
         log.info("compiled mechanism functions into %s", so)
         return so

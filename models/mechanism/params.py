@@ -31,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from knee.foundations.errors import ModelFileError, UnknownModelError
+from knee.foundations.errors import KneeInputError, ModelFileError, UnknownModelError
+from knee.foundations.files import read_text
 
 FORMAT_NAME = "knee-mechanism"
 FORMAT_VERSION = 1
@@ -44,6 +45,8 @@ LINK_SIZE = 10
 PF_SIZE = 22
 N_LINKS = 5
 N_PARAMS = N_LINKS * LINK_SIZE + PF_SIZE
+#: A knee whose link points and lengths are all under this many mm is a file in metres.
+METRES_BELOW_MM = 2.0
 
 # The flat parameter vector's layout (:meth:`MechanismParams.to_vector`), named. Within link i's block,
 # which starts at ``i * LINK_SIZE``: the femoral point, the tibial point, the plane normal and the length.
@@ -210,6 +213,15 @@ class MechanismParams:
         return dumps_toml(self)
 
 
+def require_condylar_contacts(p: "MechanismParams", what: str) -> None:
+    """Refuse (one line) parameters without exactly two contact links, the lateral and medial condyles
+    that the phantom, the contact model, gait, osteotomy and the FEM are built on."""
+    contacts = [lk.name for lk in p.links if lk.role == "contact"]
+    if len(contacts) != 2:
+        raise ModelFileError(f"model {p.name!r}: {what} needs exactly two condylar contact links (role = "
+                             f"\"contact\"), it has {len(contacts)} ({', '.join(contacts) or 'none'})")
+
+
 def parameter_names() -> list[str]:
     """Names of the entries of :meth:`MechanismParams.to_vector`, e.g. ``link0.femur.x``."""
     names = []
@@ -306,22 +318,26 @@ def params_from_dict(data: dict, origin: str = "<dict>") -> MechanismParams:
         _fail(w, f"field 'version' must be {FORMAT_VERSION} (this toolkit's format), got {version!r}")
     units = data.get("units")
     if not isinstance(units, dict):
-        _fail(w, "missing table [units] (length = \"mm\", angle = \"rad\" or \"deg\")")
+        _fail(w, "missing table [units] (length = \"mm\", angle = \"rad\" or \"deg\")" if units is None else
+              f"'units' must be a table ([units] with length = \"mm\", angle = \"rad\" or \"deg\"), got {units!r}")
     if units.get("length") != "mm":
         _fail(w + " [units]", f"length must be \"mm\" (the toolkit's unit), got {units.get('length')!r}")
     if units.get("angle") not in ("rad", "deg"):
         _fail(w + " [units]", f"angle must be \"rad\" or \"deg\", got {units.get('angle')!r}")
     ascale = 1.0 if units["angle"] == "rad" else math.pi / 180.0
     name = data.get("name")
-    if not isinstance(name, str) or not name:
+    if name is None:
         _fail(w, "missing field 'name'")
+    if not isinstance(name, str) or not name.strip():
+        _fail(w, f"field 'name' must be a non-empty string, got {name!r}")
     side = data.get("side", "right")
     if side not in ("right", "left"):
         _fail(w, f"field 'side' must be \"right\" or \"left\", got {side!r}")
 
     tf = data.get("tf")
     if not isinstance(tf, dict) or "links" not in tf:
-        _fail(w, "missing table [tf] with its [[tf.links]]")
+        _fail(w, "missing table [tf] with its [[tf.links]]" if tf is None or isinstance(tf, dict) else
+              f"'tf' must be a table with its [[tf.links]], got {tf!r}")
     raw_links = tf["links"]
     if not isinstance(raw_links, list) or len(raw_links) != N_LINKS:
         n = len(raw_links) if isinstance(raw_links, list) else 0
@@ -329,9 +345,11 @@ def params_from_dict(data: dict, origin: str = "<dict>") -> MechanismParams:
     links = []
     for i, d in enumerate(raw_links):
         lw = f"{w} tf.links[{i}]"
+        if not isinstance(d, dict):
+            _fail(lw, f"each of tf.links must be a table ([[tf.links]]), got {d!r}")
         lname = d.get("name")
         if not isinstance(lname, str) or not lname:
-            _fail(lw, "missing field 'name'")
+            _fail(lw, "missing field 'name'" if lname is None else f"field 'name' must be a string, got {lname!r}")
         lw = f"{w} tf.links[{i}] ({lname})"
         role = _choice(d, "role", lw, LINK_ROLES)
         kind = _choice(d, "kind", lw, LINK_KINDS)
@@ -359,6 +377,10 @@ def params_from_dict(data: dict, origin: str = "<dict>") -> MechanismParams:
             else:
                 surface = "plane"
         links.append(Link(lname, role, kind, femur, tibia, length, normal, fr, surface))
+    size = max(max(float(np.abs(np.r_[lk.femur, lk.tibia]).max()), lk.length) for lk in links)
+    if size < METRES_BELOW_MM:
+        _fail(w, f"the links' points and lengths are all under {METRES_BELOW_MM:g} (largest {size:.3g}): they look "
+                 f"like metres; parameter files are in mm")
     names = [lk.name for lk in links]
     if len(set(names)) != len(names):
         _fail(w, f"link names must be unique, got {names}")
@@ -367,6 +389,8 @@ def params_from_dict(data: dict, origin: str = "<dict>") -> MechanismParams:
     if "pf" in data:
         d = data["pf"]
         pw = f"{w} [pf]"
+        if not isinstance(d, dict):
+            _fail(w, f"'pf' must be a table ([pf]), got {d!r}")
         pf = PFGroup(
             axis_femur=_unit(d, "axis_femur", pw, ascale),
             point_femur=_point(d, "point_femur", pw),
@@ -386,6 +410,8 @@ def params_from_dict(data: dict, origin: str = "<dict>") -> MechanismParams:
     if "initial" in data:
         d = data["initial"]
         iw = f"{w} [initial]"
+        if not isinstance(d, dict):
+            _fail(w, f"'initial' must be a table ([initial]), got {d!r}")
         flex = math.radians(_number(d, "flexion_deg", iw))
         u = _vector(d, "tf_unknowns", iw, 5)  # beta, gamma (in the file's angle unit), x, y, z (mm)
         u[:2] *= ascale
@@ -400,9 +426,9 @@ def load_toml(path) -> MechanismParams:
     """Read a parameter file. Raises :class:`ModelFileError` with a one-line message."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as e:
-        raise ModelFileError(f"{p}: cannot read ({e.strerror})") from None
+        text = read_text(p, "parameter file")
+    except KneeInputError as e:
+        raise ModelFileError(str(e)) from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
@@ -446,9 +472,22 @@ def load_model(name_or_path) -> MechanismParams:
 # Writing
 
 
+def toml_string(x: str) -> str:
+    """A TOML basic string: backslash, quote and every control character escaped."""
+    out = []
+    for ch in x:
+        if ch in ('"', "\\"):
+            out.append("\\" + ch)
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
+            out.append({"\n": "\\n", "\t": "\\t", "\r": "\\r"}.get(ch, f"\\u{ord(ch):04x}"))
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
+
+
 def _fmt(x) -> str:
     if isinstance(x, str):
-        return '"' + x.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        return toml_string(x)
     if isinstance(x, (list, tuple, np.ndarray)):
         return "[" + ", ".join(_fmt(e) for e in x) + "]"
     return repr(float(x))
@@ -495,4 +534,4 @@ def save_toml(p: MechanismParams, path, overwrite: bool = False) -> Path:
 
 __all__ = ["Link", "PFGroup", "InitialPose", "MechanismParams", "load_model", "load_toml",
            "save_toml", "dumps_toml", "bundled_models", "params_from_dict", "parameter_names",
-           "N_PARAMS", "N_LINKS", "LINK_SIZE", "PF_SIZE"]
+           "require_condylar_contacts", "toml_string", "N_PARAMS", "N_LINKS", "LINK_SIZE", "PF_SIZE"]

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from knee.foundations.conventions import joint_to_pose
+from knee.foundations.conventions import joint_to_pose, pose_to_joint
 from knee.foundations.errors import AssemblyError, KneeInputError
 from knee.models.mechanism import closure, compiled
 from knee.models.mechanism.params import (
@@ -596,8 +596,9 @@ class Mechanism:
         """All TF assembly modes found at a flexion angle by multi-start Newton.
 
         Starts are drawn uniformly (beta, gamma in [-90, 90] deg, translations in [-100, 100] mm);
-        converged solutions (residual < 1e-9 mm) are merged when closer than 1e-6. A multi-start search
-        can miss modes; the real solutions of a 5-5 mechanism are at most 40.
+        converged solutions (residual < 1e-9 mm) are merged when closer than 1e-6, and kept only when their
+        pose's joint coordinates give ``flexion`` back (a solution past |beta| = 90 deg is a pose at flexion
+        +- 180 deg). A multi-start search can miss modes; the real solutions of a 5-5 mechanism are at most 40.
 
         Returns
         -------
@@ -623,6 +624,10 @@ class Mechanism:
             sols.append(x[np.all(np.abs(r) < RESIDUAL_TOL, axis=1)])
         x = np.vstack(sols)
         x[:, :2] = np.arctan2(np.sin(x[:, :2]), np.cos(x[:, :2]))
+        # Newton can drift past |beta| = 90 deg: such a pose's joint coordinates are those of flexion
+        # alpha +- 180 deg, not a mode at alpha; keep the solutions whose decomposition gives alpha back
+        back = pose_to_joint(joint_to_pose(np.column_stack([np.full(len(x), flexion), x])))
+        x = x[np.abs(np.angle(np.exp(1j * (back[:, 0] - flexion)))) < 1e-6]
         modes: list[np.ndarray] = []
         for m in x:  # merge the converged starts into distinct modes (at most 40 of them)
             if not any(np.abs(m - q).max() < 1e-6 for q in modes):

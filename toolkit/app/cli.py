@@ -24,11 +24,13 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from knee.app.console import error
 from knee.foundations.errors import (
     EXIT_BAD_INPUT,
+    EXIT_INTERNAL,
     EXIT_INTERRUPTED,
     EXIT_NUMERICAL,
     KneeInputError,
@@ -180,10 +182,17 @@ def main(argv=None) -> int:
     except KneeNumericalError as e:
         return error(str(e), EXIT_NUMERICAL)
     except KeyboardInterrupt:
-        print(file=sys.stderr)
-        return error("interrupted", EXIT_INTERRUPTED)
+        return error("interrupted; no results written", EXIT_INTERRUPTED)
     except BrokenPipeError:
         return 0
+    except OSError as e:  # the file system refused: a full disk, a permission changed during the run
+        where = f"{e.filename}: " if e.filename else ""
+        return error(f"{where}{e.strerror or e}; no results written", EXIT_BAD_INPUT)
+    except Exception as e:  # a bug: one line, the traceback only when asked for
+        if os.environ.get("KNEE_DEBUG"):
+            raise
+        return error(f"internal error ({type(e).__name__}: {e}); please report it with the command line "
+                     f"(KNEE_DEBUG=1 shows the traceback)", EXIT_INTERNAL)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from knee.foundations.errors import EXIT_BAD_INPUT, KneeInputError
+from knee.foundations.files import check_output
 
 
 def error(message: str, code: int = EXIT_BAD_INPUT) -> int:
@@ -21,27 +22,32 @@ def error(message: str, code: int = EXIT_BAD_INPUT) -> int:
     if ProgressBar.open_line:
         sys.stderr.write("\n")
         ProgressBar.open_line = False
-    print(f"knee: error: {' '.join(str(message).split())}", file=sys.stderr)
+    sys.stderr.write(f"knee: error: {' '.join(str(message).split())}\n")
+    sys.stderr.flush()
     return code
 
 
-def check_new(path: Path | None, force: bool) -> None:
-    """An output file to be written: refused when it exists (without ``force``) or its folder does not."""
-    if path is None:
-        return
-    if path.exists() and not force:
-        raise KneeInputError(f"{path} exists; not overwritten (use --force to replace it)")
-    if not path.parent.exists():
-        raise KneeInputError(f"directory {path.parent} does not exist")
+def check_new(path: Path | None, force: bool, inputs=(), flag: str = "--out") -> None:
+    """An output file to be written, checked before the work (:func:`knee.foundations.files.check_output`):
+    not an input, not a folder or device, writable, and replaced only with ``force``."""
+    if path is not None:
+        check_output(path, "file", force, inputs, flag)
 
 
-def out_dir(path: str, force: bool) -> Path:
-    """An output folder (created later, once the inputs have been checked): refused when it exists and is
-    not an empty folder, unless ``force``."""
-    d = Path(path)
-    if d.exists() and (not d.is_dir() or (any(d.iterdir()) and not force)):
-        raise KneeInputError(f"output folder {d} exists and is not empty; not overwritten (use --force)")
-    return d
+def out_dir(path: str, force: bool, inputs=(), flag: str = "--out") -> Path:
+    """An output folder (written later, as a whole, once the inputs have been checked): refused when it
+    is or holds an input, cannot be written, or exists and is not empty (unless ``force``)."""
+    return check_output(path, "folder", force, inputs, flag)
+
+
+#: The largest step count a run accepts (a bound on what can hang a run).
+MAX_STEPS = 100_000
+
+
+def check_max_steps(n: int) -> None:
+    """``--max-steps``: 1 to :data:`MAX_STEPS`."""
+    if not 1 <= n <= MAX_STEPS:
+        raise KneeInputError(f"--max-steps must be 1-{MAX_STEPS}, got {n}")
 
 
 def numbers(text: str, n: int, what: str, hint: str = "") -> np.ndarray:
@@ -62,13 +68,13 @@ def flexion_list(text: str) -> list[float]:
     try:
         if ":" in t:
             a, b, st = (float(v) for v in t.split(":"))
-            if not st > 0 or b < a:
+            if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(st)) or not st > 0 or b < a:
                 raise ValueError
             vals = list(np.arange(a, b + 1e-9, st))
         else:
             vals = [float(v) for v in t.split(",")]
     except ValueError:
-        raise KneeInputError(f"--flexion must be FROM:TO:STEP (STEP > 0, TO >= FROM) or a comma list of "
+        raise KneeInputError(f"--flexion must be FROM:TO:STEP (finite, STEP > 0, TO >= FROM) or a comma list of "
                              f"degrees, got {text!r}") from None
     if not vals or len(vals) > 50 or not all(math.isfinite(v) and 0.0 <= v <= 150.0 for v in vals):
         raise KneeInputError(f"--flexion must give 1-50 angles within 0-150 deg, got {text!r}")
@@ -102,4 +108,5 @@ class ProgressBar:
 
 def say(text: str) -> None:
     """A status line on standard error (results go to standard output)."""
-    print(text, file=sys.stderr, flush=True)
+    sys.stderr.write(f"{text}\n")  # one write: a Ctrl-C cannot land between the text and its newline
+    sys.stderr.flush()

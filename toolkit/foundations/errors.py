@@ -16,6 +16,8 @@ from __future__ import annotations
 #: Exit codes of the ``knee`` command line (README, "Exit codes").
 EXIT_BAD_INPUT = 2
 EXIT_NUMERICAL = 3
+#: An error the toolkit did not expect (a bug): one line, ``KNEE_DEBUG=1`` shows the traceback.
+EXIT_INTERNAL = 70
 EXIT_INTERRUPTED = 130
 
 

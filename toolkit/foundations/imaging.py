@@ -18,6 +18,7 @@ Shapes: points ``(n, 3)``, poses ``(n, 4, 4)``.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import re
@@ -29,6 +30,7 @@ import trimesh
 
 from knee.foundations.conventions import joint_coordinates, joint_to_pose
 from knee.foundations.errors import KneeInputError
+from knee.foundations.files import read_text
 
 SURFACE_SUFFIXES = (".stl", ".ply", ".obj")
 _SPACE_RE = re.compile(rb"SPACE\s*=\s*(LPS|RAS)", re.IGNORECASE)
@@ -153,26 +155,32 @@ class Markups:
 def read_markups(path) -> Markups:
     """Read a Slicer markups JSON file (all its markups' control points), converted to LPS."""
     path = Path(path)
-    if not path.is_file():
-        raise KneeInputError(f"markups file {path} not found")
+    text = read_text(path, "markups file")
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-        markups = doc["markups"]
-    except (json.JSONDecodeError, KeyError, TypeError, UnicodeDecodeError) as e:
+        doc = json.loads(text)
+    except json.JSONDecodeError as e:
         raise KneeInputError(f"{path}: not a Slicer markups JSON file ({e})") from None
+    markups = doc.get("markups") if isinstance(doc, dict) else None
+    if not isinstance(markups, list) or not all(isinstance(mk, dict) for mk in markups):
+        raise KneeInputError(f"{path}: not a Slicer markups JSON file (its 'markups' must be a list of objects)")
     labels, pts, missing = [], [], []
     for mk in markups:
         flip = _space(mk.get("coordinateSystem", "LPS"), str(path)) == "RAS"
-        for i, cp in enumerate(mk.get("controlPoints", [])):
+        cps = mk.get("controlPoints", [])
+        if not isinstance(cps, list) or not all(isinstance(cp, dict) for cp in cps):
+            raise KneeInputError(f"{path}: 'controlPoints' must be a list of objects")
+        for i, cp in enumerate(cps):
             label = str(cp.get("label", f"point{i + 1}"))
             status = cp.get("positionStatus", "defined")
             pos = cp.get("position")
             if status != "defined" or pos is None:
                 missing.append(label)
                 continue
-            p = np.asarray(pos, dtype=float)
-            if p.shape != (3,) or not np.all(np.isfinite(p)):
-                raise KneeInputError(f"{path}: point {label!r} has an invalid position {pos!r}")
+            ok = isinstance(pos, list) and len(pos) == 3 and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in pos)
+            p = np.asarray(pos, dtype=float) if ok else np.full(3, np.nan)
+            if not np.all(np.isfinite(p)):
+                raise KneeInputError(f"{path}: point {label!r} has an invalid position {pos!r} (three numbers)")
             labels.append(label)
             pts.append(p * _RAS_TO_LPS if flip else p)
     return Markups(labels, np.array(pts, dtype=float).reshape(-1, 3), missing, path)
@@ -252,12 +260,9 @@ def read_motion_csv(path, side: str = "right") -> MotionFile:
     (right-handed frames whose z points to the subject's right) are mirrored into the right-knee
     equivalent (:func:`knee.foundations.conventions.joint_coordinates`)."""
     path = Path(path)
-    if not path.is_file():
-        raise KneeInputError(f"motion file {path} not found")
-    with path.open(newline="", encoding="utf-8") as fh:
-        reader = csv.reader(fh)
-        header = [h.strip() for h in next(reader, [])]
-        raw = [row for row in reader if row and any(v.strip() for v in row)]
+    reader = csv.reader(io.StringIO(read_text(path, "motion file"), newline=""))
+    header = [h.strip() for h in next(reader, [])]
+    raw = [row for row in reader if row and any(v.strip() for v in row)]
     if not header:
         raise KneeInputError(f"{path}: empty motion file")
 

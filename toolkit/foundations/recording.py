@@ -36,6 +36,12 @@ def save(rec: rr.RecordingStream, path, blueprint: rrb.Blueprint | None = None) 
     return path
 
 
+def close(rec: rr.RecordingStream) -> None:
+    """Write out everything logged to ``rec`` and close its file (before the file is moved into place)."""
+    rec.flush()
+    rec.disconnect()
+
+
 def log_mesh(rec, entity: str, mesh, colour=None) -> None:
     """Log a trimesh mesh once, statically, under ``entity`` (move it with transforms)."""
     rec.log(entity, rr.Mesh3D(vertex_positions=np.asarray(mesh.vertices, np.float32),

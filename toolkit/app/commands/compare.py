@@ -23,12 +23,13 @@ from knee.fitting.optimize import perturb_endpoints
 from knee.fitting.subject import load_subject
 from knee.fitting.subject_anatomy import subject_anatomy
 from knee.foundations.errors import KneeInputError
+from knee.foundations.files import staged_folder
 from knee.foundations.imaging import read_motion_csv
 from knee.models.fem.depth import CAMERA_PLACEMENTS, DepthNoise, camera_from_spec
 from knee.models.fem.methods import METHODS
 from knee.models.fem.scene import build_association_model
 from knee.models.mechanism import Mechanism
-from knee.models.mechanism.params import load_model
+from knee.models.mechanism.params import load_model, require_condylar_contacts
 
 
 def camera_list(text: str) -> list[str]:
@@ -57,8 +58,10 @@ def run(args) -> int:
         raise KneeInputError(f"--methods must be a comma list of {', '.join(METHODS)}, got {args.methods!r}")
     if not (0.0 <= args.perturb <= 10.0):
         raise KneeInputError(f"--perturb must be 0-10 mm, got {args.perturb}")
-    out = out_dir(args.out, args.force)
+    out = out_dir(args.out, args.force, inputs=tuple(Path(m) for m in (args.model, args.truth)
+                                                     if m and Path(m).is_file()))
     params = load_model(args.model)
+    require_condylar_contacts(params, "the FEM comparison")
     if args.truth:
         truth, prior = Mechanism.from_name(args.truth), Mechanism(params)
         origin = f"truth {truth.params.name}, prior {params.name}"
@@ -67,21 +70,21 @@ def run(args) -> int:
         prior = Mechanism(perturb_endpoints(params, 0.5 * args.perturb, args.perturb, seed=args.seed))
         origin = (f"truth {params.name}; prior = {params.name} with every TF link endpoint moved "
                   f"{0.5 * args.perturb:g}-{args.perturb:g} mm (seed {args.seed})")
-    out.mkdir(parents=True, exist_ok=True)
     say(f"knee compare: {origin}; {len(flexions)} flexion angles x {len(cams)} camera(s) x {len(methods)} methods")
-    recorder = CompareRecorder(out / "compare.rrd", truth_phantom(truth), truth_phantom(prior), methods)
-    bar = ProgressBar()
-    progress = None if args.quiet else (lambda i, n, t: bar(i / n, t))
-    try:
-        rows = compare_cases(truth, prior, flexions, cams, methods, noise=None if args.no_noise else DepthNoise(),
-                             seed=args.seed, progress=progress, on_result=recorder)
-    finally:
-        recorder.finish()
-    write_csv(rows, out / "compare.csv")
-    title = f"Kinematic priors for the FEM: {origin}"
-    floor = prior_floor(build_association_model(prior), truth, prior, flexions)
-    (out / "compare.md").write_text(markdown(rows, methods, title) + floor_markdown(floor), encoding="utf-8")
-    plot(rows, methods, out / "compare.png", title)
+    with staged_folder(out) as tmp:
+        recorder = CompareRecorder(tmp / "compare.rrd", truth_phantom(truth), truth_phantom(prior), methods)
+        bar = ProgressBar()
+        progress = None if args.quiet else (lambda i, n, t: bar(i / n, t))
+        try:
+            rows = compare_cases(truth, prior, flexions, cams, methods, noise=None if args.no_noise else DepthNoise(),
+                                 seed=args.seed, progress=progress, on_result=recorder)
+        finally:
+            recorder.finish()
+        write_csv(rows, tmp / "compare.csv")
+        title = f"Kinematic priors for the FEM: {origin}"
+        floor = prior_floor(build_association_model(prior), truth, prior, flexions)
+        (tmp / "compare.md").write_text(markdown(rows, methods, title) + floor_markdown(floor), encoding="utf-8")
+        plot(rows, methods, tmp / "compare.png", title)
     summ = summary(rows, methods)
     print("method      cases  failed  footprints (mm)  epiphysis (mm)  |flexion error| (deg)  wall (s)")
     for m, v in summ.items():
@@ -118,7 +121,7 @@ def run_subject(args) -> int:
         if c.lower() not in CAMERA_PLACEMENTS:
             raise KneeInputError(f"a subject's comparison takes named cameras ({', '.join(CAMERA_PLACEMENTS)}), got {c!r}")
         azimuths.append(CAMERA_PLACEMENTS[c.lower()])
-    out = out_dir(args.out, args.force)
+    out = out_dir(args.out, args.force, inputs=(Path(args.model), Path(args.prior), Path(args.truth_motion)))
     subject = load_subject(args.model)
     prior = Mechanism(load_model(args.prior))
     motion = read_motion_csv(args.truth_motion, subject.side)
@@ -131,11 +134,11 @@ def run_subject(args) -> int:
     rows = compare_subject(anatomy, prior, motion.tf[rows_idx], methods, tuple(azimuths),
                            None if args.no_noise else DepthNoise(), args.seed,
                            None if args.quiet else (lambda i, n, t: bar(i / n, t)))
-    out.mkdir(parents=True, exist_ok=True)
-    write_csv(rows, out / "compare.csv")
     title = f"Subject {subject.name}: truth from {args.truth_motion}, prior {args.prior}"
-    (out / "compare.md").write_text(markdown(rows, methods, title), encoding="utf-8")
-    plot(rows, methods, out / "compare.png", title)
+    with staged_folder(out) as tmp:
+        write_csv(rows, tmp / "compare.csv")
+        (tmp / "compare.md").write_text(markdown(rows, methods, title), encoding="utf-8")
+        plot(rows, methods, tmp / "compare.png", title)
     for m, v in summary(rows, methods).items():
         print(f"{m:11s} cases {v.cases}  failed {v.failed}  footprints {v.footprints_mm:.2f} mm  epiphysis "
               f"{v.epiphysis_mm:.2f} mm  |flexion error| {v.flexion_error_deg:.2f} deg  wall {v.wall_s:.1f} s")

@@ -18,53 +18,65 @@ from pathlib import Path
 
 import numpy as np
 
-from knee.app.console import error, say
-from knee.app.demo_workers import call, start_workers
-from knee.foundations.errors import EXIT_NUMERICAL, KneeInputError
+from knee.app.console import say
+from knee.app.demo_workers import call, start_workers, stop_workers
+from knee.foundations.errors import AssemblyError, KneeInputError
+from knee.foundations.files import check_output, staged_folder
 
 
 def new_folder(base: Path) -> Path:
-    """``base``, or ``base-2``, ``base-3``, ... : the first that does not exist (created)."""
+    """``base``, or ``base-2``, ``base-3``, ... : the first that does not exist (not created; checked to be
+    writable)."""
     out, k = base, 2
-    while out.exists():  # never overwrite an earlier demo
+    while out.exists() or out.is_symlink():  # never overwrite an earlier demo
         out = base.with_name(f"{base.name}-{k}")
         k += 1
-    out.mkdir(parents=True)
-    return out
+    return check_output(out, "folder", force=False)
 
 
 def run(args) -> int:
     if not (math.isfinite(args.flexion) and 15.0 <= args.flexion <= 110.0):
         raise KneeInputError(f"--flexion must be 15-110 deg (within the prior's range), got {args.flexion}")
-    out_dir = new_folder(Path(args.out))
+    out = new_folder(Path(args.out))
+    with staged_folder(out) as tmp:  # the demo's files appear together, when complete
+        _run_into(args, tmp, out)
+    return 0
+
+
+def _run_into(args, tmp: Path, out: Path) -> None:
     fem = pool = None
-    if not args.kinematics_only:
-        # the FEM comparison (two worker processes) starts first and runs while the sweep is solved and
-        # recorded: the workers' start-up overlaps it; a thread collects their results
-        t0 = time.perf_counter()
-        pool, futures = start_workers(args.flexion, 3, 2.0)
-        say(f"knee demo: virtual depth map at {args.flexion:g} deg; the association FEM with the kinematic prior "
-            f"and with the paper's forcing, two processes (started) ...")
-        runner = ThreadPoolExecutor(max_workers=1)
-        fem = runner.submit(call, "knee.app.demo", "collect_demo_comparison", out_dir, futures, args.flexion, 3, 2.0,
-                            t0, say)
-        runner.shutdown(wait=False)
     try:
-        return _sweep_and_report(args, out_dir, fem)
+        if not args.kinematics_only:
+            # the FEM comparison (two worker processes) starts first and runs while the sweep is solved and
+            # recorded: the workers' start-up overlaps it; a thread collects their results
+            t0 = time.perf_counter()
+            pool, futures = start_workers(args.flexion, 3, 2.0)
+            say(f"knee demo: virtual depth map at {args.flexion:g} deg; the association FEM with the kinematic "
+                f"prior and with the paper's forcing, two processes (started) ...")
+            runner = ThreadPoolExecutor(max_workers=1)
+            fem = runner.submit(call, "knee.app.demo", "collect_demo_comparison", tmp, futures, args.flexion, 3,
+                                2.0, t0, say)
+            runner.shutdown(wait=False)
+        _sweep_and_report(args, tmp, out, fem)
+    except BaseException:
+        if pool is not None:
+            stop_workers(pool)  # Ctrl-C or a failure: the workers stop now, not when their cases end
+        raise
     finally:
         if pool is not None:
-            pool.shutdown(wait=fem is None or fem.done(), cancel_futures=True)
+            pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _sweep_and_report(args, out_dir: Path, fem) -> int:
+def _sweep_and_report(args, out_dir: Path, shown: Path, fem) -> None:
+    """The sweep and the report: files written to ``out_dir``, their final place ``shown`` printed."""
     # imported now, after the workers started (see the module docstring)
     sweep = importlib.import_module("knee.app.commands.sweep")
     mech = importlib.import_module("knee.models.mechanism").Mechanism.from_name("volunteer")
     hi = math.floor(math.degrees(mech.assembly_range[1]))
     a = np.arange(0.0, hi + 1.0, 1.0)
-    csv_path, rrd_path = out_dir / "volunteer-sweep.csv", out_dir / "volunteer-sweep.rrd"
+    csv_path, rrd_path = shown / "volunteer-sweep.csv", shown / "volunteer-sweep.rrd"
     say(f"knee demo: sweeping the bundled 'volunteer' knee over 0..{hi} deg ...")
-    mech, res, dt = sweep.run_sweep("volunteer", a, csv_path, rrd_path)
+    mech, res, dt = sweep.run_sweep("volunteer", a, out_dir / csv_path.name, out_dir / rrd_path.name)
     print(sweep.summary(mech, res, dt))
     i = np.searchsorted(res.flexion, math.radians(90.0))
     if i < res.flexion.size:
@@ -76,11 +88,9 @@ def _sweep_and_report(args, out_dir: Path, fem) -> int:
     print(f"recording:    {rrd_path}")
     print(f"open it with: rerun {rrd_path}")
     if not res.complete:
-        if fem is not None and not fem.cancel():
-            fem.exception()  # the comparison already runs: let it finish (its files) before reporting
-        return error(res.message, EXIT_NUMERICAL)
+        raise AssemblyError(res.message)
     if fem is None:
-        return 0
+        return
     out = fem.result()
     labels = importlib.import_module("knee.app.reports.compare").METHOD_LABELS
     print(f"\nFEM at {args.flexion:g} deg flexion (truth: volunteer; prior: volunteer with TF endpoints moved 1-2 mm; "
@@ -94,7 +104,6 @@ def _sweep_and_report(args, out_dir: Path, fem) -> int:
                   f"{r.tibia_correction_mm:.1f} mm off the prior's path (its axial rotation kept)")
         if r.notes:
             print(f"  note: {r.notes}")
-    print(f"comparison: {out_dir / 'compare.md'}, {out_dir / 'compare.png'}")
-    print(f"open it with: rerun {out_dir / 'compare.rrd'}")
+    print(f"comparison: {shown / 'compare.md'}, {shown / 'compare.png'}")
+    print(f"open it with: rerun {shown / 'compare.rrd'}")
     print(f"(the FEM part took {out.seconds:.0f} s)", file=sys.stderr)
-    return 0

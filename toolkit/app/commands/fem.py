@@ -4,6 +4,7 @@ standard case or on a measured point cloud or depth image, with an optional reco
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -11,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from knee.app.commands import fem_subject
-from knee.app.console import ProgressBar, check_new, error, numbers, say
+from knee.app.console import ProgressBar, check_max_steps, check_new, error, numbers, say
 from knee.app.experiments.cases import case_points, case_truth, run_standard_case
 from knee.app.views.fem import FemRecorder
 from knee.foundations.errors import EXIT_NUMERICAL, DivergenceError, KneeInputError
@@ -55,11 +56,12 @@ def run(args) -> int:
         if getattr(args, flag):
             raise KneeInputError(f"--{flag.replace('_', '-')} goes with a subject folder, not a parameter set")
     rrd = Path(args.rrd) if args.rrd else None
-    check_new(rrd, args.force)
+    inputs = tuple(Path(v) for v in (args.model, args.truth, args.cloud, args.depth, args.pose)
+                   if v and Path(v).is_file())
+    check_new(rrd, args.force, inputs=inputs, flag="--rrd")
     if not (math.isfinite(args.flexion) and 0.0 <= args.flexion <= 150.0):
         raise KneeInputError(f"--flexion must be 0-150 deg, got {args.flexion}")
-    if args.max_steps < 1:
-        raise KneeInputError(f"--max-steps must be positive, got {args.max_steps}")
+    check_max_steps(args.max_steps)
     if not (math.isfinite(args.bone_stall) and args.bone_stall >= 0.0):
         raise KneeInputError(f"--bone-stall must be a non-negative angle in degrees, got {args.bone_stall}")
     cam = camera_from_spec(args.camera)
@@ -84,7 +86,10 @@ def run(args) -> int:
     else:
         pts = measured
         say(f"  measured point cloud: {len(pts)} points (no truth: no target point errors)")
-    recorder = FemRecorder(rrd, model, every=max(2, args.max_steps // 80), truth=truth_info) if rrd is not None else None
+    # the recording is written beside its place and moved there when complete (a diverged run keeps its
+    # partial recording under a name of its own, for diagnosis; the previous recording is untouched)
+    partial = rrd.with_name(f".{rrd.name}.partial-{os.getpid()}") if rrd is not None else None
+    recorder = FemRecorder(partial, model, every=max(2, args.max_steps // 80), truth=truth_info) if rrd else None
     bar = ProgressBar()
 
     def on_step(k, phase, model_, surf, bone):
@@ -101,13 +106,20 @@ def run(args) -> int:
             print(file=sys.stderr)
         if recorder is not None:
             recorder.finish(message=str(e))
-            say(f"partial recording (steps 0-{recorder.last_step}): {rrd}")
+            diverged = rrd.with_name(rrd.stem + ".diverged.rrd")
+            os.replace(partial, diverged)
+            say(f"partial recording of the diverged run (steps 0-{recorder.last_step}): {diverged}")
         return error(str(e), EXIT_NUMERICAL)
+    except BaseException:
+        if partial is not None:
+            partial.unlink(missing_ok=True)
+        raise
     rec = r.reconstruction
     if not args.quiet:
         bar(1.0, f"{rec.steps} steps")
     if recorder is not None:
         recorder.finish(r, f"{rec.steps} steps, {'converged' if rec.converged else 'not converged'}")
+        os.replace(partial, rrd)
     print(f"{mech.params.name}: {rec.steps} steps ({rec.steps_bone_phase} with bone forces) in {rec.wall_seconds:.1f} s "
           f"({rec.steps / rec.wall_seconds:.1f} steps/s), {'converged' if rec.converged else 'NOT converged'}; "
           f"registration ICP fitness {rec.icp_fitness:.2f}")

@@ -39,6 +39,7 @@ from knee.fitting.subject_anatomy import subject_anatomy  # noqa: E402
 from knee.foundations import recording as R  # noqa: E402
 from knee.foundations.conventions import JOINT_COORDINATES, invert_poses, pose_to_joint, transform_points  # noqa: E402
 from knee.foundations.errors import KneeInputError  # noqa: E402
+from knee.foundations.files import staged_folder  # noqa: E402
 from knee.foundations.imaging import write_surface  # noqa: E402
 from knee.foundations.pointclouds import backproject, load_point_cloud, read_depth_image  # noqa: E402
 from knee.models.fem.methods import prior_method, skin_model  # noqa: E402
@@ -90,9 +91,8 @@ def run(args) -> int:
         raise KneeInputError("a subject needs its kinematic prior: --prior FITTED.toml (knee fit's fitted.toml)")
     if not args.out:
         raise KneeInputError("a subject's run writes its results to a folder: --out OUT")
-    out = out_dir(args.out, args.force)
-    if out.resolve() == subject_dir.resolve() or subject_dir.resolve() in out.resolve().parents:
-        raise KneeInputError(f"output folder {out} is inside the subject folder; the input folder is never written to")
+    inputs = (subject_dir,) + tuple(Path(v) for v in (args.prior, args.cloud, args.depth, args.initial_pose) if v)
+    out = out_dir(args.out, args.force, inputs=inputs)
     init_pose = _read_pose(args.initial_pose) if args.initial_pose else None
     method = args.method or "links"
     points_cam, depth, K = _points(args)
@@ -160,11 +160,11 @@ def run(args) -> int:
 def _write_outputs(out: Path, subject, model, recon, poses, points_cam, T_cam_world, result, depth, K) -> None:
     """Every output into a temporary folder beside OUT, then renamed into place: a run that fails leaves
     no half-written results."""
-    tmp = out.with_name(f".{out.name}.partial")
-    if tmp.exists():
-        for f in tmp.iterdir():
-            f.unlink()
-    tmp.mkdir(parents=True, exist_ok=True)
+    with staged_folder(out) as tmp:
+        _write_into(tmp, subject, model, recon, poses, points_cam, T_cam_world, result, depth, K)
+
+
+def _write_into(tmp: Path, subject, model, recon, poses, points_cam, T_cam_world, result, depth, K) -> None:
     meshes = {b: subject.ct[b].copy().apply_transform(poses[b]) for b in ("femur", "tibia")}
     for b, m in meshes.items():
         write_surface(tmp / f"{b}.stl", m, "LPS")
@@ -181,13 +181,8 @@ def _write_outputs(out: Path, subject, model, recon, poses, points_cam, T_cam_wo
         rec.log("camera/skin", rr.Mesh3D(vertex_positions=skin.astype(np.float32),
                                          triangle_indices=np.asarray(model.skin_faces, np.uint32),
                                          albedo_factor=R.BONE_COLOURS["skin"]), static=True)
-    rec.flush()
-    rec.disconnect()
+    R.close(rec)
     _overlay(tmp / "overlay.png", meshes, points_cam, depth, K)
-    out.mkdir(parents=True, exist_ok=True)
-    for f in tmp.iterdir():
-        f.replace(out / f.name)
-    tmp.rmdir()
 
 
 def _overlay(path, meshes, points_cam, depth, K) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 from pathlib import Path
 
@@ -10,6 +11,7 @@ import numpy as np
 from knee.app.console import check_new, out_dir
 from knee.app.views.clinical import gait_blueprint, log_gait, plot_gait
 from knee.foundations import recording
+from knee.foundations.files import staged_file, staged_folder
 from knee.models.gait import (
     Anthropometry,
     GaitResult,
@@ -18,6 +20,7 @@ from knee.models.gait import (
     read_gait_csv,
 )
 from knee.models.mechanism import Mechanism
+from knee.models.mechanism.params import require_condylar_contacts
 
 
 def write_gait_table(path: Path, res: GaitResult) -> None:
@@ -33,40 +36,48 @@ def write_gait_table(path: Path, res: GaitResult) -> None:
         if e.foundation is not None:
             head += [f"{name}_foundation_area_mm2", f"{name}_foundation_peak_MPa"]
             cols += [e.foundation.area, e.foundation.peak]
-    head.append("flags")
+    head += ["valid", "flags"]
+    valid = res.valid
     with path.open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(head)
         for k, row in enumerate(np.column_stack(cols)):
-            w.writerow([f"{v:.6g}" for v in row] + ["; ".join(st.flags[k])])
+            w.writerow([f"{v:.6g}" for v in row] + [int(valid[k]), "; ".join(st.flags[k])])
 
 
 def run(args) -> int:
-    out = out_dir(args.out, args.force)
-    rrd = Path(args.rrd) if args.rrd else out / "gait.rrd"
-    if args.rrd:
-        check_new(rrd, args.force)
+    model_file = Path(args.model) if Path(args.model).is_file() else None
+    trial_file = Path(args.trial) if args.trial else None
+    out = out_dir(args.out, args.force, inputs=(model_file, trial_file))
+    rrd = Path(args.rrd) if args.rrd else None
+    if rrd is not None:
+        check_new(rrd, args.force, inputs=(model_file, trial_file, out), flag="--rrd")
     anthro = Anthropometry(args.mass, args.height)
     trial = read_gait_csv(args.trial, args.mass) if args.trial else normative_trial(args.mass)
     mech = Mechanism.from_name(args.model)
+    require_condylar_contacts(mech.params, "the gait analysis")
     res = analyse_gait(mech, trial, anthro)
-    out.mkdir(parents=True, exist_ok=True)
-    write_gait_table(out / "gait.csv", res)
-    plot_gait(res, out / "gait.png", f"{mech.params.name}: {trial.source}")
-    rec = recording.new_recording()
-    recording.save(rec, rrd, gait_blueprint())
-    log_gait(rec, mech, res)
-    rec.flush()
+    with contextlib.ExitStack() as stack:
+        staged = stack.enter_context(staged_folder(out))
+        rrd_tmp = stack.enter_context(staged_file(rrd)) if rrd is not None else staged / "gait.rrd"
+        write_gait_table(staged / "gait.csv", res)
+        plot_gait(res, staged / "gait.png", f"{mech.params.name}: {trial.source}")
+        rec = recording.new_recording()
+        recording.save(rec, rrd_tmp, gait_blueprint())
+        log_gait(rec, mech, res)
+        recording.close(rec)
+    rrd = rrd or out / "gait.rrd"
+    if res.flagged_note:
+        print(f"WARNING: {res.flagged_note} (the valid and flags columns of {out / 'gait.csv'})")
     print(f"gait of {mech.params.name} ({trial.source}), {trial.time.size} frames, {args.mass:g} kg, "
           f"{args.height:g} m: analysed in {res.seconds:.2f} s")
-    for name, e in res.contact.items():
-        k = int(np.argmax(e.force))
-        print(f"contact {name}: peak force {e.force[k]:.0f} N at t = {trial.time[k]:.3f} s; Hertz peak pressure "
-              f"{e.hertz.peak.max():.2f} MPa, area {e.hertz.area[k]:.0f} mm2"
-              + (f"; elastic foundation peak {e.foundation.peak.max():.2f} MPa" if e.foundation is not None else ""))
-    nflag = sum(1 for f in res.statics.flags if f)
-    if nflag:
-        print(f"flagged frames: {nflag} of {trial.time.size} (a member would have to push or pull the wrong way; "
-              f"see the flags column of {out / 'gait.csv'})")
+    ok = res.valid
+    if ok.any():
+        for name, e in res.contact.items():
+            k = int(np.flatnonzero(ok)[np.argmax(e.force[ok])])
+            print(f"contact {name} (valid frames): peak force {e.force[k]:.0f} N at t = {trial.time[k]:.3f} s; Hertz "
+                  f"peak pressure {e.hertz.peak[ok].max():.2f} MPa, area {e.hertz.area[k]:.0f} mm2"
+                  + (f"; elastic foundation peak {e.foundation.peak[ok].max():.2f} MPa" if e.foundation is not None
+                     else ""))
     print(f"table: {out / 'gait.csv'}\nplot:  {out / 'gait.png'}\nrecording: {rrd}  (open with: rerun {rrd})")
     return 0

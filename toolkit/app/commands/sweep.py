@@ -14,6 +14,7 @@ from knee.app.console import check_new, error
 from knee.app.views.sweep import log_sweep, sweep_blueprint
 from knee.foundations import recording
 from knee.foundations.errors import EXIT_NUMERICAL, KneeInputError
+from knee.foundations.files import staged_file
 from knee.foundations.motion_io import SWEEP_HEADER, sweep_table, write_sweep_csv
 from knee.models.mechanism import Mechanism, SweepResult
 from knee.models.phantom import build_phantom
@@ -42,17 +43,20 @@ def run_sweep(model: str, angles_deg: np.ndarray, out: Path | None, rrd: Path | 
     t0 = time.perf_counter()
     res = mech.sweep(np.radians(angles_deg))
     dt = time.perf_counter() - t0
+    phantom = build_phantom(mech.params) if rrd is not None and res.flexion.size else None
     if out is not None:
-        write_sweep_csv(out, res.tf, res.pf, res.residual, res.condition)
+        with staged_file(out) as tmp:
+            write_sweep_csv(tmp, res.tf, res.pf, res.residual, res.condition)
     elif not quiet:
         print(",".join(SWEEP_HEADER))
         for row in sweep_table(res.tf, res.pf, res.residual, res.condition):
             print(",".join("" if not math.isfinite(v) else f"{v:.10g}" for v in row))
-    if rrd is not None and res.flexion.size:
-        rec = recording.new_recording()
-        recording.save(rec, rrd, sweep_blueprint())
-        log_sweep(rec, mech, res, build_phantom(mech.params))
-        rec.flush()
+    if phantom is not None:
+        with staged_file(rrd) as tmp:
+            rec = recording.new_recording()
+            recording.save(rec, tmp, sweep_blueprint())
+            log_sweep(rec, mech, res, phantom)
+            recording.close(rec)
     return mech, res, dt
 
 
@@ -74,8 +78,9 @@ def summary(mech: Mechanism, res: SweepResult, dt: float) -> str:
 def run(args) -> int:
     out = Path(args.out) if args.out else None
     rrd = Path(args.rrd) if args.rrd else None
-    check_new(out, args.force)
-    check_new(rrd, args.force)
+    model_file = Path(args.model) if Path(args.model).is_file() else None
+    check_new(out, args.force, inputs=(model_file,))
+    check_new(rrd, args.force, inputs=(model_file, out), flag="--rrd")
     a = angles(args.a_from, args.a_to, args.step)
     mech, res, dt = run_sweep(args.model, a, out, rrd)
     print(summary(mech, res, dt), file=sys.stderr)

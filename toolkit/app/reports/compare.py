@@ -213,5 +213,5 @@ class CompareRecorder:
         self.rec.log(f"metrics/{method}/footprints_mm", rr.Scalars(result.errors.footprints_mm))
 
     def finish(self) -> None:
-        self.rec.flush()
+        R.close(self.rec)
         self.rec.disconnect()

@@ -26,7 +26,7 @@ from knee.fitting.pipeline import (  # noqa: E402
 )
 from knee.foundations import recording as R  # noqa: E402
 from knee.foundations.conventions import invert_poses, joint_to_pose  # noqa: E402
-from knee.foundations.errors import KneeInputError  # noqa: E402
+from knee.foundations.files import check_output, staged_folder  # noqa: E402
 from knee.models.mechanism.params import save_toml  # noqa: E402
 
 
@@ -197,29 +197,28 @@ def write_recording(o: FitOutcome, path) -> Path:
             sc = 180 / math.pi if k < 3 else 1.0
             R.send_scalars(rec, f"metrics/{g}/{TF_NAMES[k]}/measured", "frame", frames, meas[:, k] * sc)
             R.send_scalars(rec, f"metrics/{g}/{TF_NAMES[k]}/model", "frame", frames, model[:, k] * sc)
-    rec.flush()
+    R.close(rec)
     return Path(path)
 
 
 def check_output_folder(subject_dir: Path, out_dir: Path, force: bool) -> None:
-    """The output folder of a fit: never inside (or containing) the subject folder; an existing, non-empty
-    one only with ``force``."""
-    s, o = Path(subject_dir).resolve(), Path(out_dir).resolve()
-    if o == s or s in o.parents:
-        raise KneeInputError(f"output folder {out_dir} is inside the subject folder {subject_dir}; the input "
-                             "folder is never written to")
-    if o in s.parents:
-        raise KneeInputError(f"output folder {out_dir} contains the subject folder; choose a separate folder")
-    if out_dir.exists() and any(out_dir.iterdir()) and not force:
-        raise KneeInputError(f"output folder {out_dir} exists and is not empty; not overwritten (use --force)")
+    """The output folder of a fit, checked before the fit: never the subject folder, inside it or around it;
+    writable; an existing, non-empty one only with ``force``."""
+    check_output(out_dir, "folder", force, inputs=(Path(subject_dir),))
 
 
 def write_outputs(o: FitOutcome, out_dir, recording: bool = True, figure: bool = True) -> dict[str, Path]:
     """The fit's files in ``out_dir``: ``first_estimate.toml`` and ``fitted.toml`` (loadable by ``knee
     sweep``), ``report.json``, ``report.md``, and unless turned off ``motion.png`` and ``fit.rrd``;
-    returns {kind: path}."""
+    returns {kind: path}. The files are written beside ``out_dir`` and moved into place together
+    (:func:`knee.foundations.files.staged_folder`): an existing folder is replaced as a whole."""
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    with staged_folder(out_dir) as tmp:
+        files = _write_into(o, tmp, recording, figure)
+    return {k: out_dir / f.name for k, f in files.items()}
+
+
+def _write_into(o: FitOutcome, out_dir: Path, recording: bool, figure: bool) -> dict[str, Path]:
     files = {"first_estimate": out_dir / "first_estimate.toml", "fitted": out_dir / "fitted.toml",
              "report_json": out_dir / "report.json", "report_md": out_dir / "report.md"}
     save_toml(o.first, files["first_estimate"], overwrite=True)

@@ -49,13 +49,23 @@ def report_markdown(cut: Cut, res: OsteotomyResult, cmp: OsteotomyComparison) ->
     for k, nm in enumerate(names):
         i = int(np.argmax(np.abs(d[:, k + 1])))
         lines.append(f"| {nm} | {abs(d[i, k + 1]):.2f} | {cmp.flexion_deg[i]:.0f} |")
-    lines += ["", f"## Contact in gait ({cmp.gait_before.trial.source})", "",
+    warn = [f"**Warning ({when}):** {g.flagged_note}." for when, g in (("before", cmp.gait_before),
+                                                                      ("after", cmp.gait_after)) if g.flagged_note]
+    if warn:
+        lines[2:2] = [x for w in warn for x in (w, "")]  # at the top, under the title
+    first = next(iter(gb.values()), None)
+    used = "" if first is None else (f" Figures from the {first.frames} of {first.of} frames before and "
+                                     f"{next(iter(ga.values())).frames} after with no flagged member (n/a: none).")
+    lines += ["", f"## Contact in gait ({cmp.gait_before.trial.source})", "", used.strip(), "",
               "| contact | peak force before (N) | after | Hertz peak before (MPa) | after | share of contact force in stance before | after |",
               "|---|---:|---:|---:|---:|---:|---:|"]
+    def f(v, spec):
+        return "n/a" if not math.isfinite(v) else format(v, spec)
+
     for nm in gb:
-        lines.append(f"| {nm} | {gb[nm].peak_force_N:.0f} | {ga[nm].peak_force_N:.0f} | "
-                     f"{gb[nm].hertz_peak_MPa:.2f} | {ga[nm].hertz_peak_MPa:.2f} | {gb[nm].mean_share:.2f} | "
-                     f"{ga[nm].mean_share:.2f} |")
+        lines.append(f"| {nm} | {f(gb[nm].peak_force_N, '.0f')} | {f(ga[nm].peak_force_N, '.0f')} | "
+                     f"{f(gb[nm].hertz_peak_MPa, '.2f')} | {f(ga[nm].hertz_peak_MPa, '.2f')} | "
+                     f"{f(gb[nm].mean_share, '.2f')} | {f(ga[nm].mean_share, '.2f')} |")
     nb = sum(1 for f in cmp.gait_before.statics.flags if f)
     na = sum(1 for f in cmp.gait_after.statics.flags if f)
     lines += ["", f"Frames with a member loaded the wrong way (flagged): {nb} before, {na} after (of "
@@ -141,4 +151,4 @@ def write_recording(cut: Cut, res: OsteotomyResult, path) -> None:
                                                                radii=[0.8]), static=True)
         rec.log(f"{root}/wbl_crossing", rr.Points3D([al.crossing], colors=[(220, 60, 40)], radii=[3.0],
                                                     labels=[f"{al.wbl_percent:.1f} %"]), static=True)
-    rec.flush()
+    R.close(rec)

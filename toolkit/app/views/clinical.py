@@ -148,10 +148,20 @@ def plot_gait(res: GaitResult, path, title: str = "") -> None:
     ax[1, 1].set_title("peak pressure (MPa)")
     ax[1, 0].legend(fontsize=7)
     ax[1, 1].legend(fontsize=7)
+    flagged = ~res.valid
     for a in ax.ravel():
         a.set_xlabel("time (s)")
-    fig.suptitle(title)
-    fig.tight_layout()
+        if flagged.any():  # flagged frames shaded: their forces and pressures are not valid
+            a.fill_between(t, 0, 1, where=flagged, transform=a.get_xaxis_transform(), color="0.85", zorder=0,
+                           step="mid")
+    if res.flagged_note:
+        fig.text(0.5, 0.995, f"WARNING: {int(flagged.sum())} of {flagged.size} frames flagged (shaded): their forces "
+                 f"and pressures are not physically valid", ha="center", va="top", color="firebrick", fontsize=11,
+                 weight="bold")
+        fig.suptitle(title, y=0.955)
+    else:
+        fig.suptitle(title)
+    fig.tight_layout(rect=(0, 0, 1, 0.96) if res.flagged_note else None)
     fig.savefig(path, dpi=100)
     plt.close(fig)
 
