@@ -421,6 +421,15 @@ def test_force_replaces_the_whole_output_set_and_an_interrupted_run_keeps_the_pr
     assert r.code == 130 and r.stderr.strip().splitlines()[-1].startswith("knee: error: interrupted")
     assert snapshot(tmp_path) == before  # the previous results, whole; no partial folder beside them
 
+    def disk_full(res, path, *a, **k):
+        raise OSError(28, "No space left on device", str(path))
+
+    monkeypatch.setattr("knee.app.commands.contact.plot_contact", disk_full)
+    r = knee("contact", "volunteer", "--out", out, "--force")
+    assert r.code == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines()[-1].endswith("contact.png: No space left on device; no results written")
+    assert snapshot(tmp_path) == before
+
 
 def test_a_failure_while_writing_leaves_no_partial_file(tmp_path, monkeypatch):
     from knee.foundations.files import staged_file, staged_folder
