@@ -17,12 +17,14 @@ from the mechanism's CasADi sensitivities, chained through the two maps above.
 
 from __future__ import annotations
 
+import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import differential_evolution, least_squares
 
+from knee.fitting.diagnostics import FitDiagnostics, diagnose
 from knee.foundations.errors import KneeInputError
 from knee.models.mechanism.params import (
     LINK_FEMUR,
@@ -111,6 +113,40 @@ def bounded_ball(w, radius):
     dg = np.where(r > 1e-8, (1 / np.cosh(safe) ** 2 - g) / safe, -2 * safe / 3)
     J = radius * (g[:, None, None] * np.eye(w.shape[1]) + (dg / safe)[:, None, None] * w[:, :, None] * w[:, None, :])
     return off, J
+
+
+@dataclass(frozen=True)
+class FitBounds:
+    """How far the bounded fit may move each group's parameters from the first estimate (seed 002's values
+    are the defaults): TF link endpoints within ``tf_endpoint_mm`` (a ball), lengths within
+    ``tf_length_mm``; the PF helical axis directions within ``pf_axis_deg``, its points (in the sagittal
+    planes) within ``pf_axis_point_mm``, the tendon endpoints within ``pf_tendon_mm``, the tendon length
+    and lambda0 within ``pf_length_mm``, the pitch within ``pf_pitch_mm_per_rad``. Set per subject in
+    ``subject.toml``'s ``[fit]`` table or with ``knee fit --bounds KEY=VALUE,...``."""
+
+    tf_endpoint_mm: float = 2.0
+    tf_length_mm: float = 5.0
+    pf_axis_deg: float = 5.0
+    pf_axis_point_mm: float = 5.0
+    pf_tendon_mm: float = 2.0
+    pf_length_mm: float = 5.0
+    pf_pitch_mm_per_rad: float = 2.0
+
+    #: The largest value each may take (beyond it the first estimate no longer anchors the fit).
+    LIMITS = {"tf_endpoint_mm": 20.0, "tf_length_mm": 30.0, "pf_axis_deg": 45.0, "pf_axis_point_mm": 50.0,
+              "pf_tendon_mm": 20.0, "pf_length_mm": 30.0, "pf_pitch_mm_per_rad": 20.0}
+
+    def updated(self, values: dict, where: str) -> "FitBounds":
+        """A copy with ``values`` ({name: number}) checked: known names, positive finite numbers within
+        :attr:`LIMITS`; :class:`KneeInputError` naming ``where`` otherwise."""
+        out = {}
+        for k, v in values.items():
+            if k not in self.LIMITS:
+                raise KneeInputError(f"{where}: unknown bound {k!r} (known: {', '.join(self.LIMITS)})")
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0.0 < v <= self.LIMITS[k]):
+                raise KneeInputError(f"{where}: bound {k} must be a number in (0, {self.LIMITS[k]:g}], got {v!r}")
+            out[k] = float(v)
+        return replace(self, **out)
 
 
 class MotionFit:
@@ -216,14 +252,41 @@ class TFFit(MotionFit):
         tf, ok = self.model_motion(w)
         return tf[:, 1:], self.motion.tf[:, 1:], ok
 
-    def jacobian(self, w) -> np.ndarray:
-        """Exact d residuals / d w, (5 n, 35), from the mechanism's sensitivities."""
+    def _dq(self, w) -> np.ndarray | None:
+        """d residuals / d (flat parameter vector), (5 n, N_PARAMS); None where the candidate is rejected."""
         tf, ok = self.model_motion(w)
         if not ok:
-            return np.zeros((5 * len(self.alphas), 35))
+            return None
         sens = tf_sensitivities(self.params_vector(w), self.kinds, tf)
         dq = self._units(sens.d_params[:, 1:6, :])  # (n, 5, N_PARAMS): beta, gamma, P
-        return dq.reshape(-1, self.p0.size) @ self._dparams_dw(w)
+        return dq.reshape(-1, self.p0.size)
+
+    def jacobian(self, w) -> np.ndarray:
+        """Exact d residuals / d w, (5 n, 35), from the mechanism's sensitivities."""
+        dq = self._dq(w)
+        if dq is None:
+            return np.zeros((5 * len(self.alphas), 35))
+        return dq @ self._dparams_dw(w)
+
+    def diagnostics(self, w) -> FitDiagnostics:
+        """Bounds used, identifiability and confidence intervals at ``w``, in the physical offsets: each
+        endpoint's move (mm) and each length's change (mm) (:mod:`knee.fitting.diagnostics`)."""
+        w = np.asarray(w, float)
+        idx, names, use = [], [], []
+        off, _ = bounded_ball(w[:30].reshape(10, 3), self.radius)
+        for i, lk in enumerate(self.first.links):
+            for j, (part, end) in enumerate(((LINK_FEMUR, "femur"), (LINK_TIBIA, "tibia"))):
+                e = link_entries(i, part)
+                idx += list(range(e.start, e.stop))
+                names += [f"{lk.name}.{end}.{c}" for c in "xyz"]
+                use += [float(np.linalg.norm(off[2 * i + j])) / self.radius] * 3
+        for i, lk in enumerate(self.first.links):
+            idx.append(link_entries(i, LINK_LENGTH))
+            names.append(f"{lk.name}.length")
+            use.append(abs(math.tanh(w[30 + i])))
+        dq = self._dq(w)
+        J = np.zeros((5 * len(self.alphas), len(idx))) if dq is None else dq[:, idx]
+        return diagnose("tf", names, ["mm"] * len(idx), J, self.residuals(w), use)
 
 
 @dataclass
@@ -236,6 +299,7 @@ class FitResult:
     evaluations: int
     seconds: float
     mae: np.ndarray  # of the fitted model vs the measured motion: TF (5,) deg, deg, mm, mm, mm; PF (6,)
+    diagnostics: FitDiagnostics | None = None
 
 
 def two_stage(prob, n_var: int, seed: int = 0, global_stage: bool = True, popsize: int = 12, maxiter: int = 15,
@@ -280,12 +344,15 @@ def two_stage(prob, n_var: int, seed: int = 0, global_stage: bool = True, popsiz
 
 def fit_tf(first: MechanismParams, motion: Motion, seed: int = 0, global_stage: bool = True,
            popsize: int = 12, maxiter: int = 15, w_box: float = 2.5, local_starts: int = 6,
-           progress=None, **kwargs) -> FitResult:
-    """Fit the TF group of ``first`` to ``motion`` (see the module docstring and :func:`two_stage`).
+           progress=None, bounds: FitBounds | None = None, **kwargs) -> FitResult:
+    """Fit the TF group of ``first`` to ``motion`` (see the module docstring and :func:`two_stage`) within
+    ``bounds`` (default: the paper's, :class:`FitBounds`).
 
     ``progress``: None or a callable ``progress(fraction, text)`` called as the work advances.
     """
     t0 = time.perf_counter()
+    if bounds is not None:
+        kwargs.update(radius=bounds.tf_endpoint_mm, length_range=bounds.tf_length_mm)
     prob = TFFit(first, motion, **kwargs)
     say = progress or (lambda f, t: None)
     w, cost_first, cost_global = two_stage(prob, 35, seed, global_stage, popsize, maxiter, w_box, local_starts,
@@ -294,7 +361,7 @@ def fit_tf(first: MechanismParams, motion: Motion, seed: int = 0, global_stage: 
         raise KneeInputError("no candidate within the bounds assembles over the measured range")
     return FitResult(params=prob.params(w), w=w, cost_first=cost_first, cost_global=cost_global,
                      cost_final=prob.cost(w), evaluations=prob.evaluations, seconds=time.perf_counter() - t0,
-                     mae=prob.mae(w))
+                     mae=prob.mae(w), diagnostics=prob.diagnostics(w))
 
 
 def motion_mae(params: MechanismParams, truth: Motion) -> np.ndarray:

@@ -36,7 +36,7 @@ import numpy as np
 
 from knee.fitting.frames import FIDUCIALS, FRAME_FUNCTIONS, check_consistent
 from knee.fitting.isometric import isometric_fibre
-from knee.fitting.optimize import Motion, fit_tf, noise_weights
+from knee.fitting.optimize import FitBounds, Motion, fit_tf, noise_weights
 from knee.fitting.pf import fit_pf
 from knee.fitting.subject import LIGAMENTS, Subject, load_subject
 from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
@@ -442,14 +442,33 @@ class FitOutcome:
     seconds: FitTimings
     seed: int = 0
     warnings: list = field(default_factory=list)
+    #: Per group ("tf", "pf"), the fit's :class:`~knee.fitting.diagnostics.FitDiagnostics`.
+    diagnostics: dict = field(default_factory=dict)
+    #: The fitted mechanism's assembly range (deg), against the measured range and :data:`NEEDED_RANGE_DEG`.
+    assembly_range_deg: tuple = (math.nan, math.nan)
+    #: The bounds the fit used (:class:`~knee.fitting.optimize.FitBounds`).
+    bounds: FitBounds | None = None
 
+    @property
+    def range_warning(self) -> str:
+        """'' when the fitted model assembles over the range a user is likely to need, else why not."""
+        lo, hi = self.assembly_range_deg
+        need_lo, need_hi = NEEDED_RANGE_DEG
+        if lo <= need_lo and hi >= need_hi:
+            return ""
+        return (f"the fitted model assembles only from {lo:.1f} to {hi:.1f} deg, not over the {need_lo:g}-{need_hi:g} deg "
+                f"a user is likely to need (a FEM case or gait outside it fails)")
+
+
+#: The flexion range (deg) a fitted knee is likely to be asked about (FEM cases, gait, osteotomy).
+NEEDED_RANGE_DEG = (0.0, 120.0)
 
 #: Global-stage effort (differential evolution population factor and generations) per setting.
 EFFORT = {"full": {"tf": (12, 15), "pf": (10, 12)}, "quick": {"tf": (5, 4), "pf": (5, 3)}}
 
 
 def fit_subject(subject: Subject | str | Path, seed: int = 0, global_stage: bool = True,
-                progress: Progress | None = None, effort: str = "full") -> FitOutcome:
+                progress: Progress | None = None, effort: str = "full", bounds: dict | None = None) -> FitOutcome:
     """Fit a subject-specific mechanism: every step on a subject folder (see the module docstring).
 
     Parameters
@@ -461,6 +480,8 @@ def fit_subject(subject: Subject | str | Path, seed: int = 0, global_stage: bool
     progress : ``progress(fraction, text)``, called as the work advances (fraction of the whole fit, 0..1)
     effort : ``"full"`` (the defaults of :func:`fit_tf`/:func:`fit_pf`) or ``"quick"`` (a small global
         stage, for trying a folder out)
+    bounds : {name: value} overriding the subject's ``[fit]`` bounds
+        (:class:`~knee.fitting.optimize.FitBounds`); the bounds used are in ``FitOutcome.bounds``
 
     Returns
     -------
@@ -497,10 +518,13 @@ def fit_subject(subject: Subject | str | Path, seed: int = 0, global_stage: bool
     if not global_stage and first_err is None:
         raise KneeInputError("the first estimate does not assemble over the measured range, so the local stage "
                              "alone cannot start; run with the global stage")
+    diagnostics = {}
+    fit_bounds = subject.bounds.updated(bounds or {}, "--bounds")
     pop, gens = EFFORT[effort]["tf"]
     tf_fit = fit_tf(first, motion, seed=seed, global_stage=global_stage, popsize=pop, maxiter=gens,
-                    progress=part(0.05, 0.5 if subject.has_pf else 0.95), weights=noise_weights())
+                    progress=part(0.05, 0.5 if subject.has_pf else 0.95), weights=noise_weights(), bounds=fit_bounds)
     t_tf = time.perf_counter() - t0
+    diagnostics["tf"] = tf_fit.diagnostics
     # the fitted geometry's own assembly at the first frame selects its branch from now on
     tf_model, _, ok, _ = quick_tf_sweep(tf_fit.params.to_vector(), tf_fit.params.kinds, motion.tf[0, 1:],
                                         motion.flexion[:1])
@@ -510,8 +534,9 @@ def fit_subject(subject: Subject | str | Path, seed: int = 0, global_stage: bool
         t0 = time.perf_counter()
         pop, gens = EFFORT[effort]["pf"]
         pf_res = fit_pf(fitted, motion, seed=seed, global_stage=global_stage, popsize=pop, maxiter=gens,
-                        progress=part(0.5, 0.95))
+                        progress=part(0.5, 0.95), bounds=fit_bounds)
         fitted = pf_res.params
+        diagnostics["pf"] = pf_res.diagnostics
         t_pf = time.perf_counter() - t0
     fitted = replace(fitted, name=f"{subject.name}-fitted",
                      description=f"Subject {subject.name}: mechanism fitted to the measured motion (knee fit, "
@@ -527,8 +552,20 @@ def fit_subject(subject: Subject | str | Path, seed: int = 0, global_stage: bool
         truth_err = validate(fitted, tm)
         truth_first = validate(first, tm) if first_err is not None else None
     seconds = FitTimings(t_first, t_tf, t_pf, time.perf_counter() - t_all)
+    try:
+        lo, hi = (math.degrees(v) for v in Mechanism(fitted).assembly_range)
+    except AssemblyError:
+        lo = hi = math.nan
+    outcome = FitOutcome(subject, first, fitted, info, motion, first_err, fitted_err, truth_err, truth_first, seconds,
+                         seed, warnings, diagnostics, (lo, hi), fit_bounds)
+    if outcome.range_warning:
+        warnings.append(outcome.range_warning)
+    for g, d in diagnostics.items():
+        if d is not None and d.on_bound:
+            warnings.append(f"{len(d.on_bound)} of {len(d.names)} {g.upper()} variables end on their bounds (the bounds, "
+                            f"not the data, decide them): {', '.join(n for n, _ in d.on_bound[:6])}"
+                            + (", ..." if len(d.on_bound) > 6 else ""))
     say(0.97, "fitted")
-    return FitOutcome(subject, first, fitted, info, motion, first_err, fitted_err, truth_err, truth_first, seconds,
-                      seed, warnings)
+    return outcome
 
 

@@ -20,7 +20,8 @@
                                     femur_medial_trochlea (anterior condyles)
       mri/labels/<bone>.json        optional instead of point lists: {"<name>": [vertex indices into
                                     mri/<bone>.*], ...}
-      motion.csv                    measured TF (and PF) motion (knee.foundations.imaging.read_motion_csv)
+      motion.csv                    measured TF (and PF) motion (knee.foundations.imaging.read_motion_csv),
+                                    or an OpenSim body-transform table named in subject.toml's [motion]
       truth.toml                    optional (synthetic subjects): the generating parameter set
 
 ``subject.toml``::
@@ -34,6 +35,8 @@
     project_tendon = true           # project the tendon-area centroids onto the CT surfaces
     [bundles]
     acl = "am"                      # restrict a ligament's search to the points with this label
+    [fit]                           # optional: the fit's bounds (knee.fitting.optimize.FitBounds)
+    pf_axis_point_mm = 20.0         # e.g. a helical axis far from the trochlear sphere fits
 
 Without a patella surface, patellar fiducials, tendon areas or PF motion the subject is TF-only.
 All geometry is returned in LPS (mm) of its scan; a left knee is mirrored (LPS x negated).
@@ -50,13 +53,16 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from knee.fitting.frames import FIDUCIALS, LANDMARKS
+from knee.fitting.frames import FIDUCIALS, LANDMARKS, femur_frame, patella_frame, tibia_frame
+from knee.fitting.optimize import FitBounds
 from knee.foundations.errors import KneeInputError
 from knee.foundations.files import read_text
 from knee.foundations.imaging import (
     Markups,
     MotionFile,
     find_surface,
+    motion_from_body_transforms,
+    read_body_transforms,
     read_markups,
     read_motion_csv,
     read_surface,
@@ -93,6 +99,8 @@ class Subject:
     bundles: dict[str, str] = field(default_factory=dict)
     truth: Path | None = None
     skin: trimesh.Trimesh | None = None
+    #: The fit's bounds for this subject (``[fit]`` in subject.toml; :class:`knee.fitting.optimize.FitBounds`).
+    bounds: FitBounds = field(default_factory=FitBounds)
     _areas: dict = field(default_factory=dict)
 
     @property
@@ -187,7 +195,7 @@ def _read_options(root: Path) -> dict:
     d["side"] = side
     if "name" in d and (not isinstance(d["name"], str) or not d["name"].strip()):
         raise KneeInputError(f"{f}: field 'name' must be a non-empty string, got {d['name']!r}")
-    for table in ("pf", "bundles"):
+    for table in ("pf", "bundles", "fit", "motion"):
         if table in d and not isinstance(d[table], dict):
             raise KneeInputError(f"{f}: '{table}' must be a table ([{table}]), got {d[table]!r}")
     pf = d.get("pf", {})
@@ -241,6 +249,44 @@ def check_landmarks_on_bones(landmarks: Markups, surfaces: dict, folder: Path, s
                              f"most {LANDMARK_TOLERANCE_MM:g} mm): picked in another space or on another bone?")
 
 
+def _body_transform_motion(root: Path, m: dict, ct_lm: Markups, side: str) -> MotionFile:
+    """The measured motion from an OpenSim body-transform table named by subject.toml's ``[motion]``::
+
+        [motion]
+        file = "passive.sto"          # .sto/.mot: time, <body>_T11 ... <body>_T44 per body
+        femur = "femur_distal_r"      # the table's body of each bone
+        tibia = "tibia_proximal_r"
+        patella = "patella_r"         # optional: PF motion
+        length_unit = "m"             # the table's translations: "m" (OpenSim's; default) or "mm"
+        reference_row = 0             # optional: the CT shows the bones at this row's poses; without it
+                                      # the poses take each bone's CT coordinates to the table's ground
+
+    Joint coordinates in the anatomical frames of the CT landmarks (knee.foundations.imaging.
+    motion_from_body_transforms)."""
+    where = f"{root / 'subject.toml'} [motion]"
+    if not isinstance(m, dict):
+        raise KneeInputError(f"{root / 'subject.toml'}: 'motion' must be a table ([motion])")
+    for key in ("file", "femur", "tibia"):
+        if not isinstance(m.get(key), str) or not m[key]:
+            raise KneeInputError(f"{where}: field '{key}' must be a non-empty string")
+    unknown = sorted(set(m) - {"file", "femur", "tibia", "patella", "length_unit", "reference_row"})
+    if unknown:
+        raise KneeInputError(f"{where}: unknown field(s) {', '.join(unknown)}")
+    ref = m.get("reference_row")
+    if ref is not None and (isinstance(ref, bool) or not isinstance(ref, int)):
+        raise KneeInputError(f"{where}: reference_row must be a whole number, got {ref!r}")
+    table = read_body_transforms(root / m["file"], str(m.get("length_unit", "m")))
+    if side == "left":  # mirrored into a right knee, as the surfaces and landmarks are
+        S = np.diag([-1.0, 1.0, 1.0, 1.0])
+        table.poses = {b: S @ T @ S for b, T in table.poses.items()}
+    bodies = {g: m[g] for g in ("femur", "tibia", "patella") if isinstance(m.get(g), str)}
+    frames = {"femur": femur_frame(ct_lm), "tibia": tibia_frame(ct_lm)}
+    if "patella" in bodies and all(k in ct_lm.labels for k in LANDMARKS["patella"]):
+        frames["patella"] = patella_frame(ct_lm)
+    tf, pf = motion_from_body_transforms(table, bodies, frames, ref)
+    return MotionFile(tf, pf, 0, len(tf))
+
+
 def load_subject(root) -> Subject:
     """Read and check a subject folder (see the module docstring). Nothing in it is written.
 
@@ -284,6 +330,10 @@ def load_subject(root) -> Subject:
     if has_mri:
         check_landmarks_on_bones(mri_lm, mri, root / "mri", side)
     motion = read_motion_csv(root / "motion.csv", side) if (root / "motion.csv").exists() else None
+    if opt.get("motion"):
+        if motion is not None:
+            raise KneeInputError(f"{root}: give the motion as motion.csv or as subject.toml's [motion] table, not both")
+        motion = _body_transform_motion(root, opt["motion"], ct_lm, side)
     pf_opt = opt.get("pf", {}) or {}
     has_pf = ("patella" in ct and motion is not None and motion.pf is not None
               and all(k in ct_lm.labels for k in LANDMARKS["patella"])
@@ -295,8 +345,9 @@ def load_subject(root) -> Subject:
             raise KneeInputError(f"{root / 'subject.toml'}: [bundles] entries must be one of {', '.join(LIGAMENTS)} "
                                  f"= \"<label>\", got {k} = {v!r}")
     truth = root / "truth.toml"
+    bounds = FitBounds().updated(opt.get("fit", {}) or {}, f"{root / 'subject.toml'} [fit]")
     return Subject(root=root, name=str(opt.get("name", root.name)), side=side, ct=ct, ct_landmarks=ct_lm, mri=mri,
                    mri_landmarks=mri_lm, motion=motion, has_pf=bool(has_pf),
                    reference_flexion_deg=None if ref is None else float(ref),
                    project_tendon=bool(pf_opt.get("project_tendon", True)), bundles=dict(bundles),
-                   truth=truth if truth.is_file() else None, skin=skin)
+                   truth=truth if truth.is_file() else None, skin=skin, bounds=bounds)

@@ -230,7 +230,22 @@ def test_pipeline_outputs_and_accuracy(fitted, subject_dir):
     assert np.all(t.tf.mae[1:3] < 0.8) and np.all(t.tf.mae[3:] < 0.5), t.tf.mae
     assert np.all(t.pf.mae[:3] < 1.0) and np.all(t.pf.mae[3:] < 0.5), t.pf.mae
     assert rep["fitted_vs_truth"]["tf"]["adduction"]["mae"] == pytest.approx(t.tf.mae[1])
-    assert "| TF | MAE | input |" in files["report_md"].read_text()
+    md = files["report_md"].read_text()
+    assert "| TF | MAE | input |" in md
+    # the report states the assembly range against the measured and the needed ranges, and what the fit
+    # determines: the same figures as the fit's own diagnostics
+    lo, hi = (math.degrees(v) for v in Mechanism(p).assembly_range)
+    assert rep["assembly_range_deg"]["fitted"] == pytest.approx([lo, hi], abs=1e-6)
+    assert rep["assembly_range_deg"]["needed"] == [0.0, 120.0] and "## Assembly range" in md
+    for g in ("tf", "pf"):
+        d = o.diagnostics[g]
+        assert rep["identifiability"][g]["condition_number"] == pytest.approx(d.condition)
+        assert len(rep["identifiability"][g]["ci95"]) == len(d.names) == (35 if g == "tf" else 17)
+        assert f"## What the fit determines: {g.upper()} group" in md
+        on = [n for n, _ in d.on_bound]
+        assert all(n in md for n in on)
+        assert not on or any(f"{len(on)} of {len(d.names)} {g.upper()} variables end on their bounds" in w
+                             for w in o.warnings)
     # the input folder is untouched
     assert not any(f.name in ("fitted.toml", "report.json") for f in subject_dir.rglob("*"))
 

@@ -495,3 +495,23 @@ def test_ctrl_c_stops_at_once_with_one_line_and_no_results(tmp_path, base, comma
     assert not out.exists() and not [p for p in tmp_path.iterdir()]  # nothing, not even a hidden partial folder
     # the demo's FEM workers are stopped, not waited for (before: about 20 s more, then results were written)
     assert stop < 10.0, stop
+
+
+BOUND_CASES = [
+    ("fit-bounds-unknown", lambda c: ["fit", c / "subject", "--out", c / "o", "--bounds", "tf_radius=3"], 2,
+     "tf_radius"),
+    ("fit-bounds-negative", lambda c: ["fit", c / "subject", "--out", c / "o", "--bounds", "pf_axis_deg=-1"], 2,
+     "pf_axis_deg"),
+    ("fit-bounds-not-pairs", lambda c: ["fit", c / "subject", "--out", c / "o", "--bounds", "4"], 2, "--bounds"),
+    ("subject-fit-bounds-string", lambda c: ["fit", subject_with(c, "subject.toml", (c / "subject/subject.toml")
+                                                                 .read_text() + '\n[fit]\ntf_endpoint_mm = "4"\n'),
+                                             "--out", c / "o"], 2, "tf_endpoint_mm"),
+    ("subject-fit-bounds-huge", lambda c: ["fit", subject_with(c, "subject.toml", (c / "subject/subject.toml")
+                                                               .read_text() + "\n[fit]\npf_axis_deg = 400\n"),
+                                           "--out", c / "o"], 2, "pf_axis_deg"),
+]
+
+
+@pytest.mark.parametrize("name,build,code,fragment", BOUND_CASES, ids=[c[0] for c in BOUND_CASES])
+def test_bad_fit_bounds_are_refused_before_the_fit(case, name, build, code, fragment, monkeypatch):
+    test_bad_input_is_one_line_and_changes_nothing(case, name, build, code, fragment, monkeypatch)

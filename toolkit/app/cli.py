@@ -98,6 +98,9 @@ def build_parser() -> argparse.ArgumentParser:
     fp.add_argument("--no-recording", action="store_true", help="do not write the Rerun recording")
     fp.add_argument("--force", action="store_true", help="write into a non-empty output folder")
     fp.add_argument("--quiet", action="store_true", help="no progress bar")
+    fp.add_argument("--bounds", help="the fit's bounds, KEY=VALUE separated by commas, over the subject's [fit] table "
+                    "(tf_endpoint_mm 2, tf_length_mm 5, pf_axis_deg 5, pf_axis_point_mm 5, pf_tendon_mm 2, "
+                    "pf_length_mm 5, pf_pitch_mm_per_rad 2)")
     gp = sub.add_parser("gait", help="inverse dynamics, link forces and contact pressures over a gait cycle")
     gp.add_argument("model", help="a bundled parameter set with a patella, or a TOML file")
     _gait_options(gp)

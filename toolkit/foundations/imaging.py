@@ -284,6 +284,101 @@ def read_motion_csv(path, side: str = "right") -> MotionFile:
     return MotionFile(tf[good], None if pf is None else pf[good], int((~good).sum()), len(rows))
 
 
+# ----------------------------------------------------------------------------------------------
+# OpenSim body-transform tables
+
+
+@dataclass
+class BodyTransforms:
+    """An OpenSim body-transform table: ``time`` (n,) and per body its poses ``poses[body]`` (n, 4, 4), mm,
+    in the table's ground frame; ``source`` the file."""
+
+    time: np.ndarray
+    poses: dict
+    source: str = ""
+
+
+def read_body_transforms(path, length_unit: str = "m") -> BodyTransforms:
+    """Read an OpenSim ``.sto``/``.mot`` table of body transforms: header lines up to ``endheader``, then a
+    tab-separated table with a ``time`` column and, per body, ``<body>_T11`` ... ``<body>_T44`` (the 4x4
+    pose row by row). Translations are in ``length_unit`` (``"m"``, OpenSim's, or ``"mm"``) and returned in
+    mm. Rows with a non-finite entry are dropped for every body (counted in the error when too few are
+    left); rotations are checked."""
+    path = Path(path)
+    if length_unit not in ("m", "mm"):
+        raise KneeInputError(f"{path}: the length unit must be \"m\" or \"mm\", got {length_unit!r}")
+    lines = read_text(path, "body-transform table").splitlines()
+    try:
+        start = next(i for i, ln in enumerate(lines) if ln.strip().lower() == "endheader") + 1
+    except StopIteration:
+        raise KneeInputError(f"{path}: not an OpenSim table (no 'endheader' line)") from None
+    rows = [ln.split("\t") for ln in lines[start:] if ln.strip()]
+    if len(rows) < 3:
+        raise KneeInputError(f"{path}: needs a header row and at least two rows of values")
+    header = [h.strip() for h in rows[0]]
+    if header[0].lower() != "time":
+        raise KneeInputError(f"{path}: the first column must be 'time', got {header[0]!r}")
+    try:
+        data = np.array([[float(v) for v in r] for r in rows[1:]], dtype=float)
+    except ValueError as e:
+        raise KneeInputError(f"{path}: a value is not a number ({e})") from None
+    if data.ndim != 2 or data.shape[1] != len(header):
+        raise KneeInputError(f"{path}: every row needs {len(header)} values")
+    bodies = sorted({h[:-4] for h in header if re.fullmatch(r".+_T[1-4][1-4]", h)})
+    if not bodies:
+        raise KneeInputError(f"{path}: no body-transform columns (<body>_T11 ... <body>_T44)")
+    good = np.all(np.isfinite(data), axis=1)
+    if good.sum() < 2:
+        raise KneeInputError(f"{path}: fewer than two complete rows ({good.sum()} of {len(data)})")
+    scale = 1000.0 if length_unit == "m" else 1.0
+    poses = {}
+    for b in bodies:
+        cols = [f"{b}_T{i}{j}" for i in range(1, 5) for j in range(1, 5)]
+        missing = [c for c in cols if c not in header]
+        if missing:
+            raise KneeInputError(f"{path}: body {b} lacks column(s) {', '.join(missing)}")
+        T = data[good][:, [header.index(c) for c in cols]].reshape(-1, 4, 4)
+        R = T[:, :3, :3]
+        if np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max() > 1e-3 or np.any(np.linalg.det(R) < 0):
+            raise KneeInputError(f"{path}: the poses of {b} are not rotations")
+        T[:, :3, 3] *= scale
+        T[:, 3] = [0.0, 0.0, 0.0, 1.0]
+        poses[b] = T
+    return BodyTransforms(data[good, 0], poses, str(path))
+
+
+def motion_from_body_transforms(table: BodyTransforms, bodies: dict, frames: dict, reference_row=None,
+                                side: str = "right") -> tuple[np.ndarray, np.ndarray | None]:
+    """TF (and PF) joint coordinates (rad, mm), (n, 6) each, from a body-transform table.
+
+    ``bodies``: {"femur": body name, "tibia": ..., optional "patella": ...}. ``frames``: the bones'
+    anatomical frames ``T_ct_bone`` (4, 4) in the CT's coordinates. The table's poses take each bone's CT
+    coordinates to ground when ``reference_row`` is None (the transforms of the static scan's bones into
+    each dynamic frame); with ``reference_row`` k, the CT shows the bones at row k's poses (the CT's
+    coordinates are ground's at that row), so bone b moves by ``T_b(i) T_b(k)^-1``."""
+    missing = [f"{g} = {b!r}" for g, b in bodies.items() if b not in table.poses]
+    if missing:
+        raise KneeInputError(f"{table.source}: no columns for {', '.join(missing)} (bodies in the table: "
+                             f"{', '.join(table.poses)})")
+
+    def moved(bone):
+        T = table.poses[bodies[bone]]
+        if reference_row is None:
+            return T
+        if not 0 <= reference_row < len(T):
+            raise KneeInputError(f"{table.source}: reference row {reference_row} outside 0..{len(T) - 1}")
+        return T @ np.linalg.inv(T[reference_row])
+
+    def relative(bone):
+        A = moved("femur") @ frames["femur"]
+        B = moved(bone) @ frames[bone]
+        return joint_coordinates(np.linalg.inv(A) @ B, side)
+
+    tf = relative("tibia")
+    pf = relative("patella") if "patella" in bodies and "patella" in frames else None
+    return tf, pf
+
+
 def write_motion_csv(path, tf, pf=None, form: str = "coordinates") -> Path:
     """Write a motion (rad, mm; (n, 6) each) as CSV, joint coordinates or 4x4 matrices."""
     path = Path(path)

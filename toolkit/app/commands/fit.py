@@ -8,15 +8,35 @@ from pathlib import Path
 
 from knee.app.console import ProgressBar
 from knee.app.reports.fit import check_output_folder, write_outputs
+from knee.fitting.optimize import FitBounds
 from knee.fitting.pipeline import fit_subject
+from knee.foundations.errors import KneeInputError
+
+
+def parse_bounds(text: str | None) -> dict:
+    """``--bounds KEY=VALUE,...`` as {key: number}, checked (:class:`knee.fitting.optimize.FitBounds`)."""
+    if not text:
+        return {}
+    out = {}
+    for item in str(text).split(","):
+        key, sep, value = item.partition("=")
+        try:
+            out[key.strip()] = float(value)
+        except ValueError:
+            raise KneeInputError(f"--bounds must be KEY=VALUE pairs separated by commas, got {item!r}") from None
+        if not sep:
+            raise KneeInputError(f"--bounds must be KEY=VALUE pairs separated by commas, got {item!r}")
+    FitBounds().updated(out, "--bounds")  # checked now, before the work
+    return out
 
 
 def run(args) -> int:
     subject_dir, out_dir = Path(args.subject_dir), Path(args.out)
     check_output_folder(subject_dir, out_dir, args.force)
+    bounds = parse_bounds(args.bounds)
     bar = ProgressBar() if not args.quiet else None
     o = fit_subject(subject_dir, seed=args.seed, global_stage=not args.no_global, progress=bar,
-                    effort="quick" if args.quick else "full")
+                    effort="quick" if args.quick else "full", bounds=bounds)
     if bar:
         bar(0.98, "writing the outputs")
     files = write_outputs(o, out_dir, recording=not args.no_recording)

@@ -18,6 +18,7 @@ import rerun as rr  # noqa: E402
 import rerun.blueprint as rrb  # noqa: E402
 
 from knee.fitting.pipeline import (  # noqa: E402
+    NEEDED_RANGE_DEG,
     TF_NAMES,
     UNITS,
     ComponentErrors,
@@ -67,6 +68,12 @@ def report_dict(o: FitOutcome) -> dict:
         "seconds": {**dataclasses.asdict(o.seconds), "fit": o.seconds.fit}, "warnings": o.warnings,
         "first_estimate": None if o.first_errors is None else _tables(o.first_errors),
         "fitted": _tables(o.fitted_errors),
+        "assembly_range_deg": {"fitted": list(o.assembly_range_deg),
+                               "measured": [float(np.degrees(o.motion.flexion.min())),
+                                            float(np.degrees(o.motion.flexion.max()))],
+                               "needed": list(NEEDED_RANGE_DEG)},
+        "identifiability": {g: d.as_dict() for g, d in o.diagnostics.items() if d is not None},
+        "bounds": None if o.bounds is None else dataclasses.asdict(o.bounds),
     }
     if info.axis is not None:
         ax, pt = info.axis, info.pitch
@@ -113,6 +120,29 @@ def report_markdown(rep: dict) -> str:
         s.append(_md_table("Fitted model vs truth", rep["fitted_vs_truth"]))
         if "first_estimate_vs_truth" in rep:
             s.append(_md_table("First estimate vs truth", rep["first_estimate_vs_truth"]))
+    if rep.get("bounds"):
+        s += ["Bounds around the first estimate: " + ", ".join(f"{k} {v:g}" for k, v in rep["bounds"].items())
+              + " (subject.toml [fit], knee fit --bounds).", ""]
+    ar = rep["assembly_range_deg"]
+    s += ["## Assembly range", "",
+          f"The fitted model assembles from {ar['fitted'][0]:.1f} to {ar['fitted'][1]:.1f} deg; the motion was measured "
+          f"over {ar['measured'][0]:.1f} to {ar['measured'][1]:.1f} deg; a user is likely to need "
+          f"{ar['needed'][0]:g} to {ar['needed'][1]:g} deg.", ""]
+    for g, d in rep["identifiability"].items():
+        s += [f"## What the fit determines: {g.upper()} group", "",
+              f"{d['variables']} variables against {d['variables'] + d['dof']} weighted residuals; condition number of "
+              f"the weighted Jacobian (in the variables' physical offsets) {d['condition_number']:.3g}, rank "
+              f"{d['rank']}; residual RMS {d['residual_rms']:.3g} (noise units).", ""]
+        if d["on_bound"]:
+            s += ["On (within 5 % of) their bounds, decided by the bounds, not the data: "
+                  + ", ".join(f"{b['name']} ({100 * b['fraction']:.0f} %)" for b in d["on_bound"]) + ".", ""]
+        s += ["Parameter combinations the measured motion hardly sees (smallest singular values):", ""]
+        s += [f"- {w}" for w in d["weakest_directions"]] + [""]
+        s += ["| variable | 95 % CI half-width |", "|---|---:|"]
+        for n, c in d["ci95"].items():
+            hw = "not determined" if c["half_width"] is None else f"{c['half_width']:.3g} {c['unit']}"
+            s.append(f"| {n} | {hw} |")
+        s.append("")
     s += ["## Steps", "", "MRI-to-CT fiducial registration error (mm):", ""]
     for b, fre in rep["mri_to_ct_fre_mm"].items():
         s.append(f"- {b}: " + ", ".join(f"{k} {v:.2f}" for k, v in fre.items()))

@@ -1,0 +1,92 @@
+"""What a fit determines (knee.fitting.diagnostics): confidence intervals against the closed form of
+linear least squares, invisible directions, bounds used, and the fit report's sections."""
+
+import math
+
+import numpy as np
+import pytest
+
+from knee.fitting.diagnostics import diagnose
+from knee.fitting.optimize import TFFit, synthetic_motion
+from knee.fitting.pf import PFFit
+from knee.models.mechanism.params import load_model
+
+
+def test_confidence_intervals_match_linear_least_squares():
+    """For r = J x - y the Gauss-Newton covariance is s^2 (J^T J)^-1 with s^2 = r.r / (m - p): computed here
+    independently with a plain inverse."""
+    rng = np.random.default_rng(0)
+    J = rng.normal(size=(40, 4)) * np.array([1.0, 3.0, 0.5, 2.0])
+    y = rng.normal(size=40)
+    x = np.linalg.lstsq(J, y, rcond=None)[0]
+    r = J @ x - y
+    d = diagnose("tf", list("abcd"), ["mm"] * 4, J, r, [0.1, 0.5, 0.96, 1.0])
+    s2 = r @ r / (40 - 4)
+    np.testing.assert_allclose(d.ci95, 1.96 * np.sqrt(np.diag(s2 * np.linalg.inv(J.T @ J))), rtol=1e-10)
+    np.testing.assert_allclose(d.singular_values, np.linalg.svd(J, compute_uv=False), rtol=1e-12)
+    assert d.condition == pytest.approx(np.linalg.cond(J)) and d.rank == 4 and d.dof == 36
+    assert [n for n, _ in d.on_bound] == ["c", "d"]
+
+
+def test_a_direction_the_data_cannot_see_is_named_and_not_given_a_finite_interval():
+    """Two parameters that enter only through their sum: their difference is invisible; a third is fine."""
+    rng = np.random.default_rng(1)
+    a, c = rng.normal(size=30), rng.normal(size=30)
+    J = np.column_stack([a, a, c])
+    d = diagnose("pf", ["u", "v", "w"], ["mm"] * 3, J, rng.normal(size=30) * 0.1, [0, 0, 0])
+    assert d.rank == 2 and math.isinf(d.condition) or d.condition > 1e12
+    assert math.isinf(d.ci95[0]) and math.isinf(d.ci95[1]) and math.isfinite(d.ci95[2])
+    weakest = d.weak[0]
+    assert "u" in weakest and "v" in weakest and ("+0.71 u" in weakest) != ("+0.71 v" in weakest)
+    assert d.as_dict()["ci95"]["u"]["half_width"] is None
+
+
+def test_bound_use_of_the_tf_and_pf_variables():
+    p = load_model("volunteer")
+    motion, _ = synthetic_motion(p, np.linspace(0, 100, 15), noise=False)
+    prob = TFFit(p, motion)
+    w = np.zeros(35)
+    assert np.all(prob.diagnostics(w).bound_use == 0.0)
+    w[0:3] = [3.0, 4.0, 0.0]  # |w| = 5: tanh(5) of the 2 mm ball
+    w[30] = 0.5
+    d = prob.diagnostics(w)
+    assert d.bound_use[:3] == pytest.approx([math.tanh(5.0)] * 3) and d.bound_use[30] == pytest.approx(math.tanh(0.5))
+    assert d.names[:3] == ["acl.femur.x", "acl.femur.y", "acl.femur.z"] and d.names[30] == "acl.length"
+    # at the true parameters with noise-free data the residuals vanish: every direction seen is exact
+    assert d.residual_rms > 0 and prob.diagnostics(np.zeros(35)).residual_rms < 1e-6
+    pf = PFFit(p, motion)
+    dp = pf.diagnostics(np.zeros(17))
+    assert dp.units[:2] == ["deg", "deg"] and dp.rank == 17 and np.all(dp.bound_use == 0.0)
+    # the physical Jacobian's columns against finite differences of the residuals in physical units: a
+    # small w moves a 2 mm ball's endpoint by 2 w mm, tilts a 5 deg cone's axis by atan(tan(5 deg) w)
+    eps = 1e-5
+    for prob_, k, per_unit in ((prob, 0, 2.0), (prob, 31, 5.0), (pf, 0, math.degrees(math.tan(math.radians(5.0)))),
+                               (pf, 8, 2.0)):
+        n = prob_.n_var if hasattr(prob_, "n_var") else 35
+        e = np.zeros(n)
+        e[k] = eps
+        fd = (prob_.residuals(e) - prob_.residuals(-e)) / (2 * eps * per_unit)
+        col = prob_.diagnostics(np.zeros(n)).jacobian[:, k]
+        np.testing.assert_allclose(col, fd, atol=1e-5 * max(1.0, np.abs(fd).max()))
+
+
+def test_bounds_per_group_move_the_parameters_that_far():
+    """FitBounds reaches the fitting problems: a saturated variable moves its parameter by the bound."""
+    from knee.fitting.optimize import FitBounds
+    from knee.models.mechanism.params import PF_POINT_FEMUR, PF_TENDON_LENGTH
+
+    p = load_model("volunteer")
+    motion, _ = synthetic_motion(p, np.linspace(0, 100, 15), noise=False)
+    w = np.zeros(17)
+    w[2] = 40.0  # the femoral axis point's x, saturated
+    w[14] = -40.0  # the tendon length, saturated low
+    for b in (FitBounds(), FitBounds().updated({"pf_axis_point_mm": 20.0, "pf_length_mm": 12.0}, "test")):
+        v = PFFit(p, motion, bounds=b).params_vector(w)
+        assert v[PF_POINT_FEMUR.start] - p.to_vector()[PF_POINT_FEMUR.start] == pytest.approx(b.pf_axis_point_mm)
+        assert v[PF_TENDON_LENGTH] - p.to_vector()[PF_TENDON_LENGTH] == pytest.approx(-b.pf_length_mm)
+    wide = TFFit(p, motion, radius=8.0)
+    wt = np.zeros(35)
+    wt[0] = 40.0
+    assert wide.params_vector(wt)[0] - p.to_vector()[0] == pytest.approx(8.0)
+    with pytest.raises(ValueError, match="unknown bound 'radius'"):
+        FitBounds().updated({"radius": 3.0}, "here")
