@@ -55,8 +55,10 @@ import trimesh
 
 from knee.fitting.frames import FIDUCIALS, LANDMARKS, femur_frame, patella_frame, tibia_frame
 from knee.fitting.optimize import FitBounds
+from knee.fitting.regions import REGION_NAMES, articular_regions
 from knee.foundations.errors import KneeInputError
 from knee.foundations.files import read_text
+from knee.foundations.geometry import rigid_register
 from knee.foundations.imaging import (
     Markups,
     MotionFile,
@@ -149,7 +151,30 @@ class Subject:
                 if idx.size == 0 or idx.min() < 0 or idx.max() >= len(surf.vertices):
                     raise KneeInputError(f"{lab}: {name} has vertex indices outside 0..{len(surf.vertices) - 1}")
                 return Area(name, surf.vertices[idx], [name] * idx.size, f"{lab}:{name}")
+        if name in REGION_NAMES and self.mri:
+            return self._computed_region(name, space)
         raise KneeInputError(f"missing area {name}: expected {f} (or an entry in {lab})")
+
+    def _computed_region(self, name: str, space: str) -> Area:
+        """An articular region the folder does not give, computed from the MRI surfaces
+        (:func:`knee.fitting.regions.articular_regions`) in the CT landmarks' frames carried into MRI space by
+        each bone's fiducial registration; the intercondylar groove in CT space when asked for there."""
+        if "computed" not in self._areas:
+            frames, T_mri = {}, {}
+            for b, frame in (("femur", femur_frame), ("tibia", tibia_frame)):
+                A, _ = rigid_register(self.mri_landmarks.require(FIDUCIALS[b]), self.ct_landmarks.require(FIDUCIALS[b]))
+                T_mri[b] = A  # MRI -> CT
+                frames[b] = np.linalg.inv(A) @ frame(self.ct_landmarks)
+            lm = self.ct_landmarks
+            width = float(np.linalg.norm(lm.get("LE") - lm.get("ME")))
+            self._areas["computed"] = (articular_regions(self.mri["femur"].vertices, self.mri["tibia"].vertices,
+                                                         frames["femur"], frames["tibia"], width), T_mri)
+        regions, T_mri = self._areas["computed"]
+        pts = regions[name]
+        if space == "ct":
+            A = T_mri[name.split("_")[0]]
+            pts = pts @ A[:3, :3].T + A[:3, 3]
+        return Area(name, pts, [name] * len(pts), f"computed from {self.root / 'mri'} surfaces ({name})")
 
     def _mirror(self, p):
         p = np.array(p, dtype=float, copy=True)
