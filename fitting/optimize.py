@@ -71,6 +71,19 @@ def noise_weights(sd=None) -> np.ndarray:
 NOISE_SD = {"sagittal_deg": 1.0, "sagittal_mm": 0.5, "out_of_plane_deg": 2.0, "out_of_plane_mm": 1.5}
 
 
+def noise_sd(values: dict | None, where: str) -> dict:
+    """:data:`NOISE_SD` with ``values`` ({name: sd}) over it, checked: known names, positive finite numbers
+    (the measurement's standard deviations, deg and mm, that weigh the fit's components)."""
+    out = dict(NOISE_SD)
+    for k, v in (values or {}).items():
+        if k not in NOISE_SD:
+            raise KneeInputError(f"{where}: unknown noise level {k!r} (known: {', '.join(NOISE_SD)})")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0.0 < v < 1e3):
+            raise KneeInputError(f"{where}: noise level {k} must be a positive number, got {v!r}")
+        out[k] = float(v)
+    return out
+
+
 def synthetic_motion(params: MechanismParams, flexion_deg, noise: bool = True, seed: int = 0):
     """``(measured, truth)`` motions of a parameter set at the given flexion angles (degrees), the
     measured one with :data:`NOISE_SD` Gaussian noise on every TF and PF component."""
@@ -197,7 +210,7 @@ class TFFit(MotionFit):
     """
 
     def __init__(self, first: MechanismParams, motion: Motion, radius: float = 2.0, length_range: float = 5.0,
-                 max_condition: float = 1e4, weights=None):
+                 max_condition: float = 1e4, weights=None, assemble_over_deg=None):
         self.first = first
         self.motion = motion
         self.radius, self.length_range, self.max_condition = float(radius), float(length_range), max_condition
@@ -209,6 +222,15 @@ class TFFit(MotionFit):
         self.alphas = motion.flexion
         self.grid, self.index = dense_grid(self.alphas)
         self.x_start = motion.tf[int(np.argmin(self.alphas)), 1:]
+        # beyond the measured range, a candidate must still assemble over ``assemble_over_deg`` (lo, hi): the
+        # continuation runs on past the measured angles (1 deg steps) up to hi, and down from the first to lo
+        self.grid_up = self.grid_down = None
+        if assemble_over_deg is not None:
+            lo, hi = (math.radians(v) for v in assemble_over_deg)
+            if hi > self.grid[-1]:
+                self.grid_up = np.linspace(self.grid[-1], hi, int(np.ceil((hi - self.grid[-1]) / math.radians(1))) + 1)[1:]
+            if lo < self.grid[0]:
+                self.grid_down = np.linspace(self.grid[0], lo, int(np.ceil((self.grid[0] - lo) / math.radians(1))) + 1)
         self.evaluations = 0
         # per-component weights on (adduction deg, internal rotation deg, anterior, proximal, lateral mm)
         self.weights = np.ones(5) if weights is None else np.asarray(weights, float)
@@ -242,9 +264,14 @@ class TFFit(MotionFit):
     def model_motion(self, w):
         """(tf (n, 6), ok) of the candidate at the measured flexion angles (swept along
         :func:`dense_grid`; ok also requires every grid angle's condition number below the limit)."""
-        tf, _, ok, cond = quick_tf_sweep(self.params_vector(w), self.kinds, self.x_start, self.grid)
+        p = self.params_vector(w)
+        grid = self.grid if self.grid_up is None else np.concatenate([self.grid, self.grid_up])
+        tf, _, ok, cond = quick_tf_sweep(p, self.kinds, self.x_start, grid)
         self.evaluations += 1
-        return tf[self.index], bool(ok and np.all(cond < self.max_condition))
+        ok = bool(ok and np.all(cond[:self.grid.size] < self.max_condition))
+        if ok and self.grid_down is not None:
+            ok = bool(quick_tf_sweep(p, self.kinds, self.x_start, self.grid_down)[2])
+        return tf[self.index], ok
 
     n_deg = 2  # adduction, internal rotation; then the three translations
 
@@ -358,7 +385,9 @@ def fit_tf(first: MechanismParams, motion: Motion, seed: int = 0, global_stage: 
     w, cost_first, cost_global = two_stage(prob, 35, seed, global_stage, popsize, maxiter, w_box, local_starts,
                                            say, "TF fit")
     if not prob.model_motion(w)[1]:
-        raise KneeInputError("no candidate within the bounds assembles over the measured range")
+        extra = "" if prob.grid_up is None and prob.grid_down is None else " and the range it must cover"
+        raise KneeInputError(f"no candidate within the bounds assembles over the measured range{extra}; widen the "
+                             "bounds (--bounds) or narrow the range (--assemble-over)")
     return FitResult(params=prob.params(w), w=w, cost_first=cost_first, cost_global=cost_global,
                      cost_final=prob.cost(w), evaluations=prob.evaluations, seconds=time.perf_counter() - t0,
                      mae=prob.mae(w), diagnostics=prob.diagnostics(w))

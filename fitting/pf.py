@@ -196,11 +196,11 @@ PFFitResult = FitResult  # the same fields; ``mae`` (6,): deg x3, mm x3, fitted 
 
 def fit_pf(params: MechanismParams, motion: Motion, seed: int = 0, global_stage: bool = True, popsize: int = 10,
            maxiter: int = 12, w_box: float = 2.5, local_starts: int = 4, progress=None,
-           bounds: FitBounds | None = None) -> PFFitResult:
+           bounds: FitBounds | None = None, noise_sd: dict | None = None) -> PFFitResult:
     """Fit the PF group of ``params`` (TF group already fitted) to ``motion`` (see the module docstring)
     within ``bounds`` (default: the paper's, :class:`~knee.fitting.optimize.FitBounds`)."""
     t0 = time.perf_counter()
-    prob = PFFit(params, motion, bounds=bounds)
+    prob = PFFit(params, motion, bounds=bounds, weights=pf_noise_weights(noise_sd))
     say = progress or (lambda f, t: None)
     w, c0, cg = two_stage(prob, prob.n_var, seed, global_stage, popsize, maxiter, w_box, local_starts, say,
                           "PF fit")

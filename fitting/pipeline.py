@@ -36,7 +36,7 @@ import numpy as np
 
 from knee.fitting.frames import FIDUCIALS, FRAME_FUNCTIONS, check_consistent
 from knee.fitting.isometric import isometric_fibre
-from knee.fitting.optimize import FitBounds, Motion, fit_tf, noise_weights
+from knee.fitting.optimize import FitBounds, Motion, fit_tf, noise_sd, noise_weights
 from knee.fitting.pf import fit_pf
 from knee.fitting.subject import LIGAMENTS, Subject, load_subject
 from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
@@ -468,7 +468,8 @@ EFFORT = {"full": {"tf": (12, 15), "pf": (10, 12)}, "quick": {"tf": (5, 4), "pf"
 
 
 def fit_subject(subject: Subject | str | Path, seed: int = 0, global_stage: bool = True,
-                progress: Progress | None = None, effort: str = "full", bounds: dict | None = None) -> FitOutcome:
+                progress: Progress | None = None, effort: str = "full", bounds: dict | None = None,
+                assemble_over_deg: tuple | None = NEEDED_RANGE_DEG, noise: dict | None = None) -> FitOutcome:
     """Fit a subject-specific mechanism: every step on a subject folder (see the module docstring).
 
     Parameters
@@ -480,6 +481,12 @@ def fit_subject(subject: Subject | str | Path, seed: int = 0, global_stage: bool
     progress : ``progress(fraction, text)``, called as the work advances (fraction of the whole fit, 0..1)
     effort : ``"full"`` (the defaults of :func:`fit_tf`/:func:`fit_pf`) or ``"quick"`` (a small global
         stage, for trying a folder out)
+    noise : {name: sd} over :data:`~knee.fitting.optimize.NOISE_SD` (the measurement's standard deviations,
+        deg and mm): the fit's component weights
+    assemble_over_deg : (lo, hi) or None
+        a TF candidate must also assemble over this flexion range (deg), beyond the measured one (a short
+        measured arc otherwise leaves the model free to stop assembling just past it); default
+        :data:`NEEDED_RANGE_DEG`, None for the measured range only
     bounds : {name: value} overriding the subject's ``[fit]`` bounds
         (:class:`~knee.fitting.optimize.FitBounds`); the bounds used are in ``FitOutcome.bounds``
 
@@ -520,9 +527,11 @@ def fit_subject(subject: Subject | str | Path, seed: int = 0, global_stage: bool
                              "alone cannot start; run with the global stage")
     diagnostics = {}
     fit_bounds = subject.bounds.updated(bounds or {}, "--bounds")
+    sd = noise_sd(noise, "--noise")
     pop, gens = EFFORT[effort]["tf"]
     tf_fit = fit_tf(first, motion, seed=seed, global_stage=global_stage, popsize=pop, maxiter=gens,
-                    progress=part(0.05, 0.5 if subject.has_pf else 0.95), weights=noise_weights(), bounds=fit_bounds)
+                    progress=part(0.05, 0.5 if subject.has_pf else 0.95), weights=noise_weights(sd), bounds=fit_bounds,
+                    assemble_over_deg=assemble_over_deg)
     t_tf = time.perf_counter() - t0
     diagnostics["tf"] = tf_fit.diagnostics
     # the fitted geometry's own assembly at the first frame selects its branch from now on
@@ -534,7 +543,7 @@ def fit_subject(subject: Subject | str | Path, seed: int = 0, global_stage: bool
         t0 = time.perf_counter()
         pop, gens = EFFORT[effort]["pf"]
         pf_res = fit_pf(fitted, motion, seed=seed, global_stage=global_stage, popsize=pop, maxiter=gens,
-                        progress=part(0.5, 0.95), bounds=fit_bounds)
+                        progress=part(0.5, 0.95), bounds=fit_bounds, noise_sd=sd)
         fitted = pf_res.params
         diagnostics["pf"] = pf_res.diagnostics
         t_pf = time.perf_counter() - t0

@@ -38,10 +38,13 @@ def main() -> None:
         print("|---|" + "---:|" * 12)
         print("| seed 002 Table 2 | " + " | ".join(f"{v:.2f}" for v in TABLE2["tf"] + TABLE2["pf"])
               + " | | | | |")
-        for label, bounds in (("default (seed 002)", None), ("PF widened " + ", ".join(
-                f"{k}={v:g}" for k, v in WIDE.items()), WIDE)):
+        wide = "PF widened " + ", ".join(f"{k}={v:g}" for k, v in WIDE.items())
+        for label, bounds, over in (("default (seed 002), measured range only", None, None),
+                                    ("default (seed 002), assembling over 0-120", None, (0.0, 120.0)),
+                                    (wide + ", measured range only", WIDE, None),
+                                    (wide + ", assembling over 0-120", WIDE, (0.0, 120.0))):
             c0 = time.process_time()
-            o = fit_subject(folder, seed=args.seed, bounds=bounds)
+            o = fit_subject(folder, seed=args.seed, bounds=bounds, assemble_over_deg=over)
             cpu = time.process_time() - c0
             tf, pf = o.fitted_errors.tf.mae, o.fitted_errors.pf.mae
             lo, hi = o.assembly_range_deg

@@ -90,3 +90,32 @@ def test_bounds_per_group_move_the_parameters_that_far():
     assert wide.params_vector(wt)[0] - p.to_vector()[0] == pytest.approx(8.0)
     with pytest.raises(ValueError, match="unknown bound 'radius'"):
         FitBounds().updated({"radius": 3.0}, "here")
+
+
+def test_a_candidate_must_assemble_over_the_range_asked_for_beyond_the_measured_arc():
+    """Measured over 10-47 deg only, the volunteer (which assembles from -104 to 129 deg) is a valid
+    candidate for 0-120 deg and is rejected for 0-140 or -110-40 deg; its residuals at the measured angles do
+    not depend on the option."""
+    p = load_model("volunteer")
+    motion, _ = synthetic_motion(p, np.linspace(10, 47, 20), noise=False)
+    w = np.zeros(35)
+    plain = TFFit(p, motion)
+    assert plain.model_motion(w)[1]
+    for rng, ok in (((0.0, 120.0), True), ((0.0, 140.0), False), ((-110.0, 40.0), False), ((-100.0, 128.0), True)):
+        prob = TFFit(p, motion, assemble_over_deg=rng)
+        tf, good = prob.model_motion(w)
+        assert good == ok, rng
+        if ok:
+            np.testing.assert_allclose(prob.residuals(w), plain.residuals(w), atol=1e-12)
+
+
+def test_noise_levels_set_the_component_weights():
+    from knee.fitting.optimize import NOISE_SD, noise_sd, noise_weights
+    from knee.fitting.pf import pf_noise_weights
+
+    sd = noise_sd({"out_of_plane_deg": 1.0, "sagittal_deg": 0.25}, "here")
+    assert sd["sagittal_mm"] == NOISE_SD["sagittal_mm"]
+    np.testing.assert_allclose(noise_weights(sd), [0.5, 0.5, 1.0, 1.0, 0.5 / 1.5])
+    np.testing.assert_allclose(pf_noise_weights(sd)[:3], [2.0, 0.5, 0.5])
+    with pytest.raises(ValueError, match="unknown noise level 'flexion'"):
+        noise_sd({"flexion": 1.0}, "here")

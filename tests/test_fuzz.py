@@ -502,6 +502,12 @@ BOUND_CASES = [
      "tf_radius"),
     ("fit-bounds-negative", lambda c: ["fit", c / "subject", "--out", c / "o", "--bounds", "pf_axis_deg=-1"], 2,
      "pf_axis_deg"),
+    ("fit-assemble-over-bad", lambda c: ["fit", c / "subject", "--out", c / "o", "--assemble-over", "120:0"], 2,
+     "--assemble-over"),
+    ("fit-noise-unknown", lambda c: ["fit", c / "subject", "--out", c / "o", "--noise", "flexion=2"], 2,
+     "flexion"),
+    ("fit-noise-zero", lambda c: ["fit", c / "subject", "--out", c / "o", "--noise", "sagittal_mm=0"], 2,
+     "sagittal_mm"),
     ("fit-bounds-not-pairs", lambda c: ["fit", c / "subject", "--out", c / "o", "--bounds", "4"], 2, "--bounds"),
     ("subject-fit-bounds-string", lambda c: ["fit", subject_with(c, "subject.toml", (c / "subject/subject.toml")
                                                                  .read_text() + '\n[fit]\ntf_endpoint_mm = "4"\n'),

@@ -98,6 +98,10 @@ def build_parser() -> argparse.ArgumentParser:
     fp.add_argument("--no-recording", action="store_true", help="do not write the Rerun recording")
     fp.add_argument("--force", action="store_true", help="write into a non-empty output folder")
     fp.add_argument("--quiet", action="store_true", help="no progress bar")
+    fp.add_argument("--noise", help="the measurement's standard deviations that weigh the fit, KEY=VALUE by commas "
+                    "(sagittal_deg 1, sagittal_mm 0.5, out_of_plane_deg 2, out_of_plane_mm 1.5)")
+    fp.add_argument("--assemble-over", default="0:120", help="the flexion range LO:HI (deg) the fitted knee must "
+                    "assemble over beyond the measured one, or 'none' (0:120)")
     fp.add_argument("--bounds", help="the fit's bounds, KEY=VALUE separated by commas, over the subject's [fit] table "
                     "(tf_endpoint_mm 2, tf_length_mm 5, pf_axis_deg 5, pf_axis_point_mm 5, pf_tendon_mm 2, "
                     "pf_length_mm 5, pf_pitch_mm_per_rad 2)")

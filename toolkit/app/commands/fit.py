@@ -3,18 +3,19 @@ parameter files, report, figure and recording (:mod:`knee.app.reports.fit`)."""
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
 from knee.app.console import ProgressBar
 from knee.app.reports.fit import check_output_folder, write_outputs
-from knee.fitting.optimize import FitBounds
+from knee.fitting.optimize import FitBounds, noise_sd
 from knee.fitting.pipeline import fit_subject
 from knee.foundations.errors import KneeInputError
 
 
-def parse_bounds(text: str | None) -> dict:
-    """``--bounds KEY=VALUE,...`` as {key: number}, checked (:class:`knee.fitting.optimize.FitBounds`)."""
+def key_values(text: str | None, flag: str) -> dict:
+    """``KEY=VALUE,...`` as {key: number}; one line naming ``flag`` otherwise."""
     if not text:
         return {}
     out = {}
@@ -23,20 +24,45 @@ def parse_bounds(text: str | None) -> dict:
         try:
             out[key.strip()] = float(value)
         except ValueError:
-            raise KneeInputError(f"--bounds must be KEY=VALUE pairs separated by commas, got {item!r}") from None
+            sep = ""
         if not sep:
-            raise KneeInputError(f"--bounds must be KEY=VALUE pairs separated by commas, got {item!r}")
+            raise KneeInputError(f"{flag} must be KEY=VALUE pairs separated by commas, got {item!r}")
+    return out
+
+
+def parse_bounds(text: str | None) -> dict:
+    """``--bounds KEY=VALUE,...`` as {key: number}, checked (:class:`knee.fitting.optimize.FitBounds`)."""
+    out = key_values(text, "--bounds")
     FitBounds().updated(out, "--bounds")  # checked now, before the work
     return out
+
+
+def parse_range(text: str) -> tuple[float, float] | None:
+    """``--assemble-over LO:HI`` (deg, finite, LO < HI, within -90..180) or ``none``."""
+    t = str(text).strip().lower()
+    if t == "none":
+        return None
+    try:
+        lo, hi = (float(v) for v in t.split(":"))
+    except ValueError:
+        lo = hi = math.nan
+    if not (math.isfinite(lo) and math.isfinite(hi) and -90.0 <= lo < hi <= 180.0):
+        raise KneeInputError(f"--assemble-over must be LO:HI in degrees (LO < HI, within -90 to 180) or 'none', "
+                             f"got {text!r}")
+    return lo, hi
 
 
 def run(args) -> int:
     subject_dir, out_dir = Path(args.subject_dir), Path(args.out)
     check_output_folder(subject_dir, out_dir, args.force)
     bounds = parse_bounds(args.bounds)
+    over = parse_range(args.assemble_over)
+    noise = key_values(args.noise, "--noise")
+    noise_sd(noise, "--noise")  # checked now, before the work
     bar = ProgressBar() if not args.quiet else None
     o = fit_subject(subject_dir, seed=args.seed, global_stage=not args.no_global, progress=bar,
-                    effort="quick" if args.quick else "full", bounds=bounds)
+                    effort="quick" if args.quick else "full", bounds=bounds, assemble_over_deg=over,
+                    noise=noise)
     if bar:
         bar(0.98, "writing the outputs")
     files = write_outputs(o, out_dir, recording=not args.no_recording)
