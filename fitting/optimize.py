@@ -57,6 +57,38 @@ class Motion:
         return self.tf[:, 0]
 
 
+def average_cycle_halves(motion: Motion, step_deg: float = 1.0) -> Motion:
+    """A flexion-extension cycle's two halves averaged (seed 002 fitted the mean of the two): the frames
+    up to the largest flexion and those after it, each interpolated over flexion on the angles both
+    cover (every ``step_deg``), then averaged component by component. Refused when one half covers less
+    than 5 deg or the halves do not overlap."""
+    a = motion.flexion
+    k = int(np.argmax(a))
+    halves = [np.arange(0, k + 1), np.arange(k, len(a))]
+    spans = [(a[h].min(), a[h].max()) for h in halves]
+    lo, hi = max(s[0] for s in spans), min(s[1] for s in spans)
+    if min(s[1] - s[0] for s in spans) < math.radians(5.0) or hi - lo < math.radians(5.0):
+        raise KneeInputError("averaging the cycle's halves needs a flexion half and an extension half that each "
+                             f"cover 5 deg or more and overlap by 5 deg (flexion peaks at row {k + 1} of {len(a)})")
+    grid = np.arange(lo, hi + 1e-12, math.radians(step_deg))
+
+    def mean(q):
+        if q is None:
+            return None
+        out = np.empty((grid.size, q.shape[1]))
+        for j in range(q.shape[1]):
+            vals = []
+            for h in halves:
+                order = np.argsort(a[h])
+                vals.append(np.interp(grid, a[h][order], q[h][order, j]))
+            out[:, j] = 0.5 * (vals[0] + vals[1])
+        return out
+
+    tf = mean(motion.tf)
+    tf[:, 0] = grid
+    return Motion(tf, mean(motion.pf))
+
+
 def noise_weights(sd=None) -> np.ndarray:
     """Weights 1/sd for (adduction, internal rotation, anterior, proximal, lateral), normalised so the
     sagittal translations weigh 1: a maximum-likelihood objective under the measurement noise."""

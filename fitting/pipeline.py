@@ -36,12 +36,13 @@ import numpy as np
 
 from knee.fitting.frames import FIDUCIALS, FRAME_FUNCTIONS, check_consistent
 from knee.fitting.isometric import isometric_fibre
-from knee.fitting.optimize import FitBounds, Motion, fit_tf, noise_sd, noise_weights
+from knee.fitting.optimize import FitBounds, Motion, average_cycle_halves, fit_tf, noise_sd, noise_weights
 from knee.fitting.pf import fit_pf
 from knee.fitting.subject import LIGAMENTS, Subject, load_subject
 from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
 from knee.foundations.errors import AssemblyError, KneeInputError
 from knee.foundations.geometry import fit_plane, fit_sphere, rigid_register
+from knee.foundations.imaging import read_motion_csv
 from knee.foundations.surfaces import SurfaceQuery
 from knee.models.mechanism.params import (
     InitialPose,
@@ -448,6 +449,8 @@ class FitOutcome:
     assembly_range_deg: tuple = (math.nan, math.nan)
     #: The bounds the fit used (:class:`~knee.fitting.optimize.FitBounds`).
     bounds: FitBounds | None = None
+    #: (motion file, :class:`Validation`) of each trial given to check the fit, not fitted to.
+    cross_trial: list = field(default_factory=list)
 
     @property
     def range_warning(self) -> str:
@@ -469,7 +472,8 @@ EFFORT = {"full": {"tf": (12, 15), "pf": (10, 12)}, "quick": {"tf": (5, 4), "pf"
 
 def fit_subject(subject: Subject | str | Path, seed: int = 0, global_stage: bool = True,
                 progress: Progress | None = None, effort: str = "full", bounds: dict | None = None,
-                assemble_over_deg: tuple | None = NEEDED_RANGE_DEG, noise: dict | None = None) -> FitOutcome:
+                assemble_over_deg: tuple | None = NEEDED_RANGE_DEG, noise: dict | None = None,
+                average_halves: bool = False, extra_trials=(), check_trials=()) -> FitOutcome:
     """Fit a subject-specific mechanism: every step on a subject folder (see the module docstring).
 
     Parameters
@@ -489,6 +493,11 @@ def fit_subject(subject: Subject | str | Path, seed: int = 0, global_stage: bool
         :data:`NEEDED_RANGE_DEG`, None for the measured range only
     bounds : {name: value} overriding the subject's ``[fit]`` bounds
         (:class:`~knee.fitting.optimize.FitBounds`); the bounds used are in ``FitOutcome.bounds``
+    average_halves : fit the mean of the cycle's flexion and extension halves
+        (:func:`~knee.fitting.optimize.average_cycle_halves`), each trial's
+    extra_trials : more motion files of the same knee (motion CSV paths) fitted together with the folder's
+    check_trials : motion files of the same knee not fitted: the fitted model's error on each is reported
+        (``FitOutcome.cross_trial``)
 
     Returns
     -------
@@ -501,8 +510,19 @@ def fit_subject(subject: Subject | str | Path, seed: int = 0, global_stage: bool
     say(0.0, "reading the subject folder")
     subject = subject if isinstance(subject, Subject) else load_subject(Path(subject))
     subject.require_fit_inputs()
-    motion = Motion(subject.motion.tf, subject.motion.pf if subject.has_pf else None)
+    extra = [read_motion_csv(f, subject.side) for f in extra_trials]
+    checks = [(str(f), read_motion_csv(f, subject.side)) for f in check_trials]
     warnings = []
+
+    def prepared(m):
+        mo = Motion(m.tf, m.pf if subject.has_pf else None)
+        if subject.has_pf and m.pf is None:
+            raise KneeInputError("a trial without PF motion cannot be fitted or checked with one that has it")
+        return average_cycle_halves(mo) if average_halves else mo
+
+    parts = [prepared(m) for m in [subject.motion, *extra]]
+    motion = Motion(np.vstack([m.tf for m in parts]),
+                    np.vstack([m.pf for m in parts]) if subject.has_pf else None)
     if subject.motion.skipped:
         warnings.append(f"{subject.motion.skipped} of {subject.motion.rows} motion rows skipped (missing or "
                         "non-finite values)")
@@ -567,6 +587,11 @@ def fit_subject(subject: Subject | str | Path, seed: int = 0, global_stage: bool
         lo = hi = math.nan
     outcome = FitOutcome(subject, first, fitted, info, motion, first_err, fitted_err, truth_err, truth_first, seconds,
                          seed, warnings, diagnostics, (lo, hi), fit_bounds)
+    for name, m in checks:
+        try:
+            outcome.cross_trial.append((name, validate(fitted, prepared(m))))
+        except AssemblyError as e:
+            warnings.append(f"cross-trial check {name}: the fitted model does not assemble over it ({e})")
     if outcome.range_warning:
         warnings.append(outcome.range_warning)
     for g, d in diagnostics.items():

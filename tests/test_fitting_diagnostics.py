@@ -119,3 +119,49 @@ def test_noise_levels_set_the_component_weights():
     np.testing.assert_allclose(pf_noise_weights(sd)[:3], [2.0, 0.5, 0.5])
     with pytest.raises(ValueError, match="unknown noise level 'flexion'"):
         noise_sd({"flexion": 1.0}, "here")
+
+
+def test_the_cycle_halves_are_averaged_on_the_flexion_both_cover():
+    from knee.fitting.optimize import Motion, average_cycle_halves
+
+    p = load_model("volunteer")
+    up, _ = synthetic_motion(p, np.linspace(5, 60, 23), noise=False)
+    down, _ = synthetic_motion(p, np.linspace(60, 0, 31), noise=False)
+    tf = np.vstack([up.tf, down.tf[1:]])
+    pf = np.vstack([up.pf, down.pf[1:]])
+    tf_h, pf_h = tf.copy(), pf.copy()
+    n_up = len(up.tf)
+    tf_h[:n_up, 1] -= math.radians(1.0)  # hysteresis: the flexion half 1 deg below, the extension half above
+    tf_h[n_up:, 1] += math.radians(1.0)
+    pf_h[:n_up, 0] += math.radians(2.0)
+    pf_h[n_up:, 0] -= math.radians(2.0)
+    m = average_cycle_halves(Motion(tf_h, pf_h))
+    assert math.degrees(m.flexion[0]) == pytest.approx(5.0) and math.degrees(m.flexion[-1]) == pytest.approx(60.0)
+    truth, _ = synthetic_motion(p, np.degrees(m.flexion), noise=False)
+    # the offsets cancel (to the interpolation error) below the last 2.5 deg, where the peak row, shared by
+    # both halves, carries the flexion half's offset into the extension half's interpolation
+    inner = np.degrees(m.flexion) < 57.5
+    np.testing.assert_allclose(m.tf[inner, 1], truth.tf[inner, 1], atol=2e-4)
+    np.testing.assert_allclose(m.pf[inner, 0], truth.pf[inner, 0], atol=2e-4)
+    with pytest.raises(ValueError, match="halves"):
+        average_cycle_halves(up)  # no extension half
+
+
+def test_trials_fitted_together_and_a_held_out_trial_checked(tmp_path):
+    """A second trial of the synthetic knee (other noise) fitted together doubles the frames; a third, held
+    out, is reported with errors of the measurement noise's size."""
+    from knee.fitting.pipeline import fit_subject
+    from knee.fitting.synthetic import make_subject
+    from knee.foundations.imaging import write_motion_csv
+
+    d = make_subject(tmp_path / "s", seed=0, frames=20)
+    truth = load_model(d / "truth.toml")
+    trials = []
+    for k in (7, 8):
+        m, _ = synthetic_motion(truth, np.linspace(0, 120, 20), noise=True, seed=k)
+        trials.append(write_motion_csv(tmp_path / f"trial{k}.csv", m.tf, m.pf))
+    o = fit_subject(d, effort="quick", extra_trials=[trials[0]], check_trials=[trials[1]])
+    assert len(o.motion.tf) == 40
+    (name, v), = o.cross_trial
+    assert name.endswith("trial8.csv")
+    assert np.all(v.tf.mae[1:] < 2.0 * o.fitted_errors.tf.mae[1:] + 0.5), (v.tf.mae, o.fitted_errors.tf.mae)

@@ -508,6 +508,12 @@ BOUND_CASES = [
      "flexion"),
     ("fit-noise-zero", lambda c: ["fit", c / "subject", "--out", c / "o", "--noise", "sagittal_mm=0"], 2,
      "sagittal_mm"),
+    ("fit-check-trial-missing", lambda c: ["fit", c / "subject", "--out", c / "o", "--check-trial",
+                                           c / "nope.csv"], 2, "nope.csv"),
+    ("fit-also-trial-in-out", lambda c: ["fit", c / "subject", "--out", c / "a-folder", "--force", "--also-trial",
+                                         write(c, "a-folder/t.csv", "x\n")], 2, "t.csv"),
+    ("fit-check-trial-latin1", lambda c: ["fit", c / "subject", "--out", c / "o", "--check-trial",
+                                          write(c, "t.csv", latin1("tf_flexion_deg\n"))], 2, "t.csv"),
     ("fit-bounds-not-pairs", lambda c: ["fit", c / "subject", "--out", c / "o", "--bounds", "4"], 2, "--bounds"),
     ("subject-fit-bounds-string", lambda c: ["fit", subject_with(c, "subject.toml", (c / "subject/subject.toml")
                                                                  .read_text() + '\n[fit]\ntf_endpoint_mm = "4"\n'),

@@ -98,6 +98,12 @@ def build_parser() -> argparse.ArgumentParser:
     fp.add_argument("--no-recording", action="store_true", help="do not write the Rerun recording")
     fp.add_argument("--force", action="store_true", help="write into a non-empty output folder")
     fp.add_argument("--quiet", action="store_true", help="no progress bar")
+    fp.add_argument("--average-halves", action="store_true", help="fit the mean of the cycle's flexion and "
+                    "extension halves")
+    fp.add_argument("--also-trial", action="append", metavar="MOTION.csv", help="another trial of the same knee, "
+                    "fitted together with the folder's (repeatable)")
+    fp.add_argument("--check-trial", action="append", metavar="MOTION.csv", help="a trial of the same knee not "
+                    "fitted: the fitted model's error on it is reported (repeatable)")
     fp.add_argument("--noise", help="the measurement's standard deviations that weigh the fit, KEY=VALUE by commas "
                     "(sagittal_deg 1, sagittal_mm 0.5, out_of_plane_deg 2, out_of_plane_mm 1.5)")
     fp.add_argument("--assemble-over", default="0:120", help="the flexion range LO:HI (deg) the fitted knee must "

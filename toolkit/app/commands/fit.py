@@ -12,6 +12,7 @@ from knee.app.reports.fit import check_output_folder, write_outputs
 from knee.fitting.optimize import FitBounds, noise_sd
 from knee.fitting.pipeline import fit_subject
 from knee.foundations.errors import KneeInputError
+from knee.foundations.files import check_output
 
 
 def key_values(text: str | None, flag: str) -> dict:
@@ -55,6 +56,10 @@ def parse_range(text: str) -> tuple[float, float] | None:
 def run(args) -> int:
     subject_dir, out_dir = Path(args.subject_dir), Path(args.out)
     check_output_folder(subject_dir, out_dir, args.force)
+    for f in (args.also_trial or []) + (args.check_trial or []):
+        check_output(out_dir, "folder", True, inputs=(Path(f),))  # a trial inside the output folder
+        if not Path(f).is_file():
+            raise KneeInputError(f"motion file {f} not found")
     bounds = parse_bounds(args.bounds)
     over = parse_range(args.assemble_over)
     noise = key_values(args.noise, "--noise")
@@ -62,7 +67,8 @@ def run(args) -> int:
     bar = ProgressBar() if not args.quiet else None
     o = fit_subject(subject_dir, seed=args.seed, global_stage=not args.no_global, progress=bar,
                     effort="quick" if args.quick else "full", bounds=bounds, assemble_over_deg=over,
-                    noise=noise)
+                    noise=noise, average_halves=args.average_halves, extra_trials=args.also_trial or (),
+                    check_trials=args.check_trial or ())
     if bar:
         bar(0.98, "writing the outputs")
     files = write_outputs(o, out_dir, recording=not args.no_recording)
@@ -76,6 +82,9 @@ def run(args) -> int:
     if fe.pf is not None:
         pn = ("flexion", "tilt", "rotation", "anterior", "proximal", "lateral")
         print("PF MAE  " + "  ".join(f"{n} {v:.2f}" for n, v in zip(pn, fe.pf.mae)) + "  (deg, mm)")
+    for name, v in o.cross_trial:
+        print(f"cross-trial {name}: TF MAE " + "  ".join(f"{n} {x:.2f}" for n, x in zip(names, v.tf.mae[1:]))
+              + ("" if v.pf is None else "; PF flexion %.2f deg" % v.pf.mae[0]))
     for w in o.warnings:
         print(f"warning: {w}", file=sys.stderr)
     for k, f in files.items():

@@ -74,6 +74,7 @@ def report_dict(o: FitOutcome) -> dict:
                                "needed": list(NEEDED_RANGE_DEG)},
         "identifiability": {g: d.as_dict() for g, d in o.diagnostics.items() if d is not None},
         "bounds": None if o.bounds is None else dataclasses.asdict(o.bounds),
+        "cross_trial": {name: _tables(v) for name, v in o.cross_trial},
     }
     if info.axis is not None:
         ax, pt = info.axis, info.pitch
@@ -120,6 +121,9 @@ def report_markdown(rep: dict) -> str:
         s.append(_md_table("Fitted model vs truth", rep["fitted_vs_truth"]))
         if "first_estimate_vs_truth" in rep:
             s.append(_md_table("First estimate vs truth", rep["first_estimate_vs_truth"]))
+    for name, block in rep.get("cross_trial", {}).items():
+        s += [f"## Cross-trial check: {name} (not fitted)", ""]
+        s.append(_md_table("Fitted model on the held-out trial", block))
     if rep.get("bounds"):
         s += ["Bounds around the first estimate: " + ", ".join(f"{k} {v:g}" for k, v in rep["bounds"].items())
               + " (subject.toml [fit], knee fit --bounds).", ""]
