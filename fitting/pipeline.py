@@ -277,12 +277,72 @@ def _project(mesh_bone, p):
     return SurfaceQuery.of(mesh_bone).closest_points(np.asarray(p, float)[None])[0]
 
 
-def pf_first_estimate(subject: Subject, geo: Geometry, motion: Motion,
-                      ref_deg: float) -> tuple[PFGroup, HelicalAxisFit, PitchFit]:
+@dataclass(frozen=True)
+class MotionAxis:
+    """The patella's mean helical axis relative to the femur over the measured PF motion (femur frame):
+    unit ``n`` (medial -> lateral), ``q`` on the sagittal plane z = 0, the pitch ``lambda1`` (mm/rad), the
+    patella's rotation it spans (deg), and its angle (deg) and distance (mm, between the q points) to the
+    imaging axis (:func:`helical_axis`)."""
+
+    n: np.ndarray
+    q: np.ndarray
+    lambda1: float
+    span_deg: float
+    angle_to_imaging_deg: float
+    distance_to_imaging_mm: float
+
+
+#: The patellar rotation (deg) the measured PF motion must span for its helical axis to be used.
+MIN_AXIS_SPAN_DEG = 10.0
+
+
+def motion_helical_axis(pf, imaging: HelicalAxisFit | None = None) -> MotionAxis | None:
+    """The mean helical axis of the patella's measured poses ``pf`` (n, 6) relative to the femur: the
+    finite helical axes from the first pose to each other pose (rotations of 5 deg or more), their mean
+    direction weighted by the squared rotation (a finite axis's direction error falls as 1/rotation), the point nearest all of them in least squares ((I - R_k) q = t_k minus its axial part), and
+    the pitch as the slope of the axial translation against the rotation. None when the motion spans less
+    than :data:`MIN_AXIS_SPAN_DEG`."""
+    T = joint_to_pose(np.asarray(pf, float))
+    M = T[1:] @ np.linalg.inv(T[0])
+    R, t = M[:, :3, :3], M[:, :3, 3]
+    ang = np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+    use = ang >= math.radians(5.0)
+    if not use.any() or math.degrees(ang.max()) < MIN_AXIS_SPAN_DEG:
+        return None
+    R, t, ang = R[use], t[use], ang[use]
+    w = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    n_k = w / (2.0 * np.sin(ang))[:, None]
+    sign = np.where(n_k[:, 2] < 0.0, -1.0, 1.0)  # medial -> lateral
+    n_k, theta = n_k * sign[:, None], ang * sign
+    n = (n_k * (theta ** 2)[:, None]).sum(axis=0)  # large rotations define the axis best (noise ~ 1/theta)
+    n /= np.linalg.norm(n)
+    A = np.eye(3) - R  # (k, 3, 3)
+    rhs = t - (t @ n)[:, None] * n
+    q = np.linalg.lstsq(A.reshape(-1, 3), rhs.reshape(-1), rcond=None)[0]
+    q = q - q[2] / n[2] * n
+    d = t @ n
+    lam1 = float((theta @ d) / (theta @ theta))
+    angle = dist = math.nan
+    if imaging is not None:
+        angle = math.degrees(math.acos(min(1.0, abs(float(n @ imaging.n)))))
+        dist = float(np.linalg.norm(q - imaging.q))
+    return MotionAxis(n, q, lam1, float(math.degrees(np.abs(theta).max())), angle, dist)
+
+
+def pf_first_estimate(subject: Subject, geo: Geometry, motion: Motion, ref_deg: float,
+                      bounds: FitBounds | None = None) -> tuple[PFGroup, HelicalAxisFit, PitchFit, "MotionAxis | None"]:
     """The PF group from imaging and the measured motion at the reference flexion ``ref_deg``, with the
-    helical axis and pitch fits it came from."""
+    helical axis and pitch fits it came from. The helical axis and pitch come from the imaging (the
+    anterior condyles' spheres and the intercondylar plane), unless the measured motion's own axis
+    (:func:`motion_helical_axis`, when the patella turns :data:`MIN_AXIS_SPAN_DEG` or more) lies outside
+    the fit's bounds around it (``bounds.pf_axis_deg``, ``bounds.pf_axis_point_mm``): a fit started from
+    the imaging axis could not reach it, so the first estimate starts from the motion's axis and pitch."""
     ax = helical_axis(subject, geo)
-    n_f, q_f = ax.n, ax.q
+    b = bounds or FitBounds()
+    mo = motion_helical_axis(motion.pf, ax) if motion.pf is not None else None
+    if mo is not None and mo.angle_to_imaging_deg <= b.pf_axis_deg and mo.distance_to_imaging_mm <= b.pf_axis_point_mm:
+        mo = None  # within reach of the imaging axis: the imaging's first estimate stands (seed 002)
+    n_f, q_f = (ax.n, ax.q) if mo is None else (mo.n, mo.q)
     a_ref = math.radians(ref_deg)
     T_tf = joint_to_pose(_interp_pose(motion, "tf", a_ref))
     T_pf = joint_to_pose(_interp_pose(motion, "pf", a_ref))
@@ -293,7 +353,7 @@ def pf_first_estimate(subject: Subject, geo: Geometry, motion: Motion,
         raise KneeInputError("helical axis: nearly parallel to the patella's sagittal plane at the reference pose")
     q_p = a_p - a_p[2] / n_p[2] * n_p
     lam0 = float((R @ q_p + P - q_f) @ n_f)
-    pitch = helical_pitch(subject, geo, n_f, q_f, P)
+    pitch = helical_pitch(subject, geo, ax.n, ax.q, P)
     ends = {}
     for bone, area in (("tibia", "tendon_tibia"), ("patella", "tendon_patella")):
         c = geo.to_bone(subject.area(area).points, bone).mean(axis=0)
@@ -304,16 +364,16 @@ def pf_first_estimate(subject: Subject, geo: Geometry, motion: Motion,
     l6 = float(np.linalg.norm(transform_points(T_pf, ends["patella"][None])[0]
                               - transform_points(T_tf, ends["tibia"][None])[0]))
     pf = PFGroup(axis_femur=n_f, point_femur=q_f, axis_patella=n_p, point_patella=q_p, tendon_tibia=ends["tibia"],
-                 tendon_patella=ends["patella"], tendon_length=l6, lambda0=lam0, lambda1=pitch.lambda1,
-                 reference_flexion=a_ref)
-    return pf, ax, pitch
+                 tendon_patella=ends["patella"], tendon_length=l6, lambda0=lam0,
+                 lambda1=pitch.lambda1 if mo is None else mo.lambda1, reference_flexion=a_ref)
+    return pf, ax, pitch, mo
 
 
 @dataclass(frozen=True)
 class FirstEstimateInfo:
     """What each step of the first estimate found, for the report: the anatomical frames ``T_ct_bone``
     (4, 4) per bone, the MRI alignments, the two contacts, the three fibres, and (with a patella) the
-    helical axis and pitch."""
+    imaging's helical axis and pitch, and the measured motion's helical axis."""
 
     frames: dict
     alignment: dict
@@ -322,10 +382,16 @@ class FirstEstimateInfo:
     geometry: Geometry
     axis: HelicalAxisFit | None = None
     pitch: PitchFit | None = None
+    #: The measured motion's mean helical axis when the first estimate uses it (out of the bounds' reach of
+    #: the imaging axis), else None.
+    motion_axis: MotionAxis | None = None
 
 
-def first_estimate(subject: Subject, motion: Motion | None = None) -> tuple[MechanismParams, FirstEstimateInfo]:
-    """Steps 1-5: the first-estimate parameter set and what each step found (for the report)."""
+def first_estimate(subject: Subject, motion: Motion | None = None,
+                   bounds: FitBounds | None = None) -> tuple[MechanismParams, FirstEstimateInfo]:
+    """Steps 1-5: the first-estimate parameter set and what each step found (for the report); ``bounds``
+    the fit's (default: the subject's), which decide whether the PF axis comes from the imaging or the
+    motion (:func:`pf_first_estimate`)."""
     motion = motion or Motion(subject.motion.tf, subject.motion.pf)
     frames = anatomical_frames(subject)
     align = align_mri(subject)
@@ -339,18 +405,18 @@ def first_estimate(subject: Subject, motion: Motion | None = None) -> tuple[Mech
         links.append(Link(name=name, role="contact", kind="distance", femur=c.femur.centre,
                           tibia=c.tibia.centre, length=c.length, femur_radius=c.femur.radius,
                           tibia_surface=c.surface))
-    pf, axis, pitch = None, None, None
+    pf, axis, pitch, motion_axis = None, None, None, None
     if subject.has_pf:
         lo, hi = float(np.degrees(motion.flexion.min())), float(np.degrees(motion.flexion.max()))
         ref = subject.reference_flexion_deg if subject.reference_flexion_deg is not None else 0.5 * (lo + hi)
         if not lo <= ref <= hi:
             raise KneeInputError(f"PF reference flexion {ref:.1f} deg is outside the measured range {lo:.1f}..{hi:.1f}")
-        pf, axis, pitch = pf_first_estimate(subject, geo, motion, ref)
+        pf, axis, pitch, motion_axis = pf_first_estimate(subject, geo, motion, ref, bounds or subject.bounds)
     params = MechanismParams(name=f"{subject.name}-first-estimate", links=tuple(links), pf=pf,
                              initial=InitialPose(float(motion.tf[0, 0]), motion.tf[0, 1:].copy()),
                              description=f"First estimate of subject {subject.name} from imaging (knee fit)",
                              source=str(subject.root), side=subject.side)
-    return params, FirstEstimateInfo(frames, align, contacts, fibres, geo, axis, pitch)
+    return params, FirstEstimateInfo(frames, align, contacts, fibres, geo, axis, pitch, motion_axis)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -530,7 +596,9 @@ def fit_subject(subject: Subject | str | Path, seed: int = 0, global_stage: bool
         warnings.append("PF motion given but the patella surface or landmarks are missing: TF-only fit")
     t0 = time.perf_counter()
     say(0.02, "first estimate from imaging")
-    first, info = first_estimate(subject, motion)
+    fit_bounds = subject.bounds.updated(bounds or {}, "--bounds")
+    sd = noise_sd(noise, "--noise")
+    first, info = first_estimate(subject, motion, fit_bounds)
     try:
         first_err = validate(first, motion)
     except AssemblyError as e:
@@ -546,8 +614,6 @@ def fit_subject(subject: Subject | str | Path, seed: int = 0, global_stage: bool
         raise KneeInputError("the first estimate does not assemble over the measured range, so the local stage "
                              "alone cannot start; run with the global stage")
     diagnostics = {}
-    fit_bounds = subject.bounds.updated(bounds or {}, "--bounds")
-    sd = noise_sd(noise, "--noise")
     pop, gens = EFFORT[effort]["tf"]
     tf_fit = fit_tf(first, motion, seed=seed, global_stage=global_stage, popsize=pop, maxiter=gens,
                     progress=part(0.05, 0.5 if subject.has_pf else 0.95), weights=noise_weights(sd), bounds=fit_bounds,

@@ -165,3 +165,22 @@ def test_trials_fitted_together_and_a_held_out_trial_checked(tmp_path):
     (name, v), = o.cross_trial
     assert name.endswith("trial8.csv")
     assert np.all(v.tf.mae[1:] < 2.0 * o.fitted_errors.tf.mae[1:] + 0.5), (v.tf.mae, o.fitted_errors.tf.mae)
+
+
+def test_the_motions_helical_axis_is_the_mechanisms_own():
+    """Noise-free PF motion of a parameter set: its mean helical axis is the set's helical axis (direction,
+    point on z = 0) and its pitch the set's lambda1."""
+    from knee.fitting.pipeline import motion_helical_axis
+
+    p = load_model("volunteer")
+    m, _ = synthetic_motion(p, np.linspace(0, 110, 40), noise=False)
+    ax = motion_helical_axis(m.pf)
+    n0 = p.pf.axis_femur / np.linalg.norm(p.pf.axis_femur)
+    n0 = n0 if n0[2] > 0 else -n0
+    q0 = p.pf.point_femur - p.pf.point_femur[2] / n0[2] * n0
+    assert math.degrees(math.acos(min(1.0, ax.n @ n0))) < 1e-4
+    np.testing.assert_allclose(ax.q, q0, atol=1e-4)
+    assert ax.lambda1 == pytest.approx(p.pf.lambda1 * np.sign(p.pf.axis_femur[2]), abs=1e-4)
+    assert ax.span_deg > 10.0
+    short, _ = synthetic_motion(p, np.linspace(20, 24, 5), noise=False)
+    assert motion_helical_axis(short.pf) is None  # under MIN_AXIS_SPAN_DEG of patellar rotation

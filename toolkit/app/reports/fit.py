@@ -82,6 +82,12 @@ def report_dict(o: FitOutcome) -> dict:
                                "sphere_rms": [ax.lateral.rms, ax.medial.rms],
                                "pitch_mm_per_rad": pt.lambda1, "groove_plane_angle_to_axis_deg": pt.angle_to_axis_deg,
                                "groove_plane_rms": pt.rms}
+        mo = info.motion_axis
+        if mo is not None:
+            rep["helical_axis"]["from_motion"] = {
+                "n_femur": mo.n.tolist(), "q_femur": mo.q.tolist(), "pitch_mm_per_rad": mo.lambda1,
+                "span_deg": mo.span_deg, "angle_to_imaging_deg": mo.angle_to_imaging_deg,
+                "distance_to_imaging_mm": mo.distance_to_imaging_mm, "used": True}
     if o.truth_errors is not None:
         rep["fitted_vs_truth"] = _tables(o.truth_errors)
         if o.truth_first_errors is not None:
@@ -164,6 +170,13 @@ def report_markdown(rep: dict) -> str:
         s += ["", f"Helical axis: n = {np.round(h['n_femur'], 4).tolist()}, q = {np.round(h['q_femur'], 2).tolist()} "
                   f"mm; pitch {h['pitch_mm_per_rad']:.3f} mm/rad (intercondylar plane normal "
                   f"{h['groove_plane_angle_to_axis_deg']:.2f} deg from the axis)."]
+        if "from_motion" in h:
+            m = h["from_motion"]
+            s += ["", f"The first estimate uses the measured motion's mean helical axis instead (the patella turns "
+                      f"{m['span_deg']:.1f} deg): n = {np.round(m['n_femur'], 4).tolist()}, q = "
+                      f"{np.round(m['q_femur'], 2).tolist()} mm, pitch {m['pitch_mm_per_rad']:.3f} mm/rad; "
+                      f"{m['angle_to_imaging_deg']:.1f} deg and {m['distance_to_imaging_mm']:.1f} mm from the "
+                      f"imaging axis."]
     return "\n".join(s) + "\n"
 
 
