@@ -327,3 +327,17 @@ def test_the_solver_cache_loads_only_what_it_can_trust(tmp_path, monkeypatch):
     assert shared.compiled and shared.library.parent != cache
     res = Mechanism(p, compile=True).sweep(DEG(np.arange(0, 31, 5.0)))
     assert res.complete
+
+
+def test_a_diverging_closure_is_said_in_words_not_as_nan():
+    from dataclasses import replace
+
+    from knee.models.mechanism.params import InitialPose
+    from knee.models.mechanism.solver import _residual_text
+
+    assert _residual_text(float("nan")).startswith("Newton diverged") and _residual_text(0.5) == "residual 0.5 mm"
+    p = load_model("volunteer")
+    far = replace(p, initial=InitialPose(0.0, np.array([3.0, -3.0, 500.0, -900.0, 700.0])))
+    with pytest.raises(AssemblyError) as e:
+        Mechanism(far)
+    assert "nan" not in str(e.value)

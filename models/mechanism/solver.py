@@ -99,6 +99,13 @@ def _subdivide(al, max_step):
     return np.r_[al[0], start + t * step], keep
 
 
+def _residual_text(res: float) -> str:
+    """A closure residual for a message: the value in mm, or what a non-finite one means."""
+    if not math.isfinite(res):
+        return "Newton diverged: no finite pose near the start; the links cannot close there"
+    return f"residual {res:.3g} mm"
+
+
 def dense_grid(flexion, max_gap: float = math.radians(1.0)):
     """The angles sorted, with angles added so that no gap exceeds ``max_gap`` (rad): continuation along
     it cannot step over a fold or onto another branch between two requested angles. Returns
@@ -388,7 +395,7 @@ class Mechanism:
             if not self._ok(np.r_[d, 0.0], use_pf=False):
                 raise AssemblyError(
                     f"{self.params.name}: the stored initial pose does not close at "
-                    f"{math.degrees(ini.flexion):.3g} deg (residual {np.abs(d).max():.3g} mm)")
+                    f"{math.degrees(ini.flexion):.3g} deg ({_residual_text(np.abs(d).max())})")
             return _fresh(s, 0.0, ini.flexion)
         for deg in (0, 10, 20, 30, 45, 60, 90, -10):
             modes = self.assembly_modes(math.radians(deg), _all=True)
@@ -495,7 +502,7 @@ class Mechanism:
         s, d = st.outputs
         res = float(np.abs(d[:6 if self.has_pf else 5]).max())
         if not res < RESIDUAL_TOL:
-            raise AssemblyError(f"no closure at {math.degrees(a):.3f} deg (residual {res:.3g} mm)")
+            raise AssemblyError(f"no closure at {math.degrees(a):.3f} deg ({_residual_text(res)})")
         tf = np.empty(6)
         tf[0] = a
         tf[1:] = s[closure.STATE_X]
