@@ -53,6 +53,9 @@ def main():
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
     ap.add_argument("--out", default=None)
     ap.add_argument("--methods", default="links,kinematics,init")
+    ap.add_argument("--truth-motion", choices=("template", "lenhart2015"), default="template",
+                    help="the truth's motion: the template mechanism's (30/60/90 deg), or the lenhart2015 knee's "
+                         "measured dynamic-MRI motion transferred as joint coordinates (20/30/45 deg)")
     args = ap.parse_args()
     from knee.app.experiments.subject_cases import compare_subject
     from knee.fitting.optimize import perturb_endpoints
@@ -77,14 +80,41 @@ def main():
     print(f"Visible Human knee: read and clipped in {t_read:.1f} s; femoral width {anatomy.width:.1f} mm; scanned at "
           f"{math.degrees(anatomy.scan_tf[0]):.1f} deg flexion; model built in {t_build:.2f} s; template scale "
           f"{scale:.3f}", file=sys.stderr, flush=True)
-    flexions = np.radians([30.0, 60.0, 90.0])
     # the truth's motion anchored at the scan (the template is another knee: its own pose at the scanned
     # flexion differs from this knee's; its motion from there is what poses this knee)
     from knee.foundations.conventions import invert_poses, joint_to_pose, pose_to_joint
 
-    T = joint_to_pose(truth.motion_at(flexions)[0])
-    E = invert_poses(joint_to_pose(truth.motion_at(np.array([anatomy.scan_tf[0]]))[0][0])) @ anatomy.tibia_pose
-    tf = pose_to_joint(T @ E)
+    if args.truth_motion == "template":
+        flexions = np.radians([30.0, 60.0, 90.0])
+        T = joint_to_pose(truth.motion_at(flexions)[0])
+        T_scan = joint_to_pose(truth.motion_at(np.array([anatomy.scan_tf[0]]))[0][0])
+    else:
+        # a measured motion, not a mechanism's: the lenhart2015 knee's joint coordinates (its anatomical frames)
+        import tempfile
+
+        from knee.fitting.reference_data import lenhart_subject
+        from knee.fitting.subject import load_subject
+
+        with tempfile.TemporaryDirectory() as tmp:
+            measured = load_subject(lenhart_subject(args.data, Path(tmp) / "lenhart2015")).motion.tf
+        k = int(np.argmax(measured[:, 0]))  # the trial flexes from 27 to 47 deg, then extends to 10 deg
+        halves = (measured[: k + 1], measured[k:])
+        up = max(halves, key=lambda h: np.ptp(h[:, 0]))  # the half that covers more flexion
+        order = np.argsort(up[:, 0])
+
+        def at(a):
+            return np.array([np.interp(a, up[order, 0], up[order, j]) for j in range(6)])
+
+        # transferred as joint coordinates: the measured rotations as they are; the translations as this
+        # knee's own at its scan plus the measured knee's change from the start of its arc (the two knees'
+        # origins differ, their translations' changes over flexion are what carries over)
+        q = np.array([at(a) for a in np.radians([20.0, 30.0, 45.0])])
+        q[:, 3:] = anatomy.scan_tf[3:] + (q[:, 3:] - up[order[0], 3:])
+        T, T_scan = joint_to_pose(q), None
+    if T_scan is not None:
+        tf = pose_to_joint(T @ invert_poses(T_scan) @ anatomy.tibia_pose)
+    else:
+        tf = pose_to_joint(T)
     methods = tuple(m.strip() for m in args.methods.split(","))
     rows = compare_subject(anatomy, prior, tf, methods, azimuths=(35.0,), seed=3,
                            progress=lambda i, n, t: print(f"[{i}/{n}] {t}", file=sys.stderr, flush=True))
