@@ -195,3 +195,29 @@ def test_initialisation_with_a_tibia_correction_and_links_at_rest_there(voluntee
     own = [lk.length for lk in volunteer.params.links]
     assert np.abs(np.asarray(links.L0) - own).max() > 1.0
     np.testing.assert_allclose(link_springs(model, volunteer, T_tibia=T_prior).L0, own, atol=1e-6)
+
+
+def test_a_diverging_surface_phase_falls_back_to_the_initialisation(model, volunteer, monkeypatch):
+    """When the surface phase blows up, (ii)/(iii) return the prior's initialised pose with a note instead of
+    failing: the bones where the initialisation put them (the same as with no surface step at all)."""
+    import knee.models.fem.methods as fm
+    from knee.app.experiments.cases import case_points
+    from knee.foundations.errors import DivergenceError
+    from knee.models.fem.depth import default_camera
+
+    pts, _ = case_points(volunteer, 60.0, default_camera(), None)
+
+    def no_steps(model_, surf, max_steps, steps):
+        return steps, False
+
+    def blow_up(model_, surf, max_steps, steps):
+        model_.solver.x[:] += 1e3  # what a blow-up leaves behind
+        raise DivergenceError("the FEM diverged at step 9: energy blow-up", 9)
+
+    monkeypatch.setattr(fm, "surface_phase", no_steps)
+    ref = fm.prior_method("init", build_association_model(volunteer), volunteer, pts)  # fresh models: the
+    monkeypatch.setattr(fm, "surface_phase", blow_up)  # initialisation starts from the model's state
+    r = fm.prior_method("init", build_association_model(volunteer), volunteer, pts)
+    assert any("surface phase diverged" in n for n in r.notes) and not r.converged and r.steps == 9
+    np.testing.assert_allclose(r.grid_x, ref.grid_x, atol=1e-2)  # the iterative solves (timing-adaptive refreshes)
+    assert abs(r.flexion_deg - ref.flexion_deg) < 1e-3

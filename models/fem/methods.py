@@ -503,6 +503,7 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
             links = link_springs(model, prior, T_tibia=corr.T)
             s.fields.append(links)
         s.invalidate()
+        x_init = s.x.copy()
         try:
             steps, converged = surface_phase(model, surf, max_steps, steps)
             if links is not None:
@@ -515,6 +516,15 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
                     links = None
                     s.invalidate()
                     steps, converged = surface_phase(model, surf, max_steps, steps)
+        except DivergenceError as e:
+            # the surface phase blew up: the answer is the prior's initialisation (its pose, the tibia's
+            # correction), said so, rather than no answer
+            s.x[:] = x_init
+            s.v[:] = 0.0
+            s.invalidate()
+            steps, converged = e.step, False
+            notes.append(f"the surface phase diverged ({e}); the result is the prior's initialisation without the "
+                         "surface forces")
         finally:
             for f in (surf, links):
                 if f is not None and f in s.fields:
