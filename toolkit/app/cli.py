@@ -6,6 +6,8 @@
     knee demo [--out DIR] [--flexion 60] [--kinematics-only]
     knee synth-subject OUT_DIR [--model volunteer] [--seed N] [--frames 60]
     knee fit SUBJECT_DIR --out OUT_DIR [--seed N] [--quick] [--no-global] [--no-recording] [--force]
+             [--bounds KEY=VALUE,...] [--noise KEY=VALUE,...] [--assemble-over 0:120|none] [--average-halves]
+             [--also-trial MOTION.csv] [--check-trial MOTION.csv]
     knee gait MODEL [--trial CSV] [--mass 72] [--height 1.75] [--out DIR] [--rrd FILE] [--force]
     knee contact MODEL [--load 700] [--out DIR] [--force]
     knee osteotomy MODEL --bone tibia|femur --angle 8 [--plane px,py,pz,nx,ny,nz] [--hinge hx,hy,hz,ax,ay,az]
@@ -14,9 +16,10 @@
     knee fem MODEL [--flexion 90] [--truth MODEL] [--camera oblique|frontal|lateral|AZ,EL,DIST] [--rrd FILE]
              [--cloud FILE | --depth FILE --intrinsics fx,fy,cx,cy [--depth-scale 1]] [--pose FILE]
 
-Angles in degrees, lengths in mm. Exit codes: 0 success; 2 bad input (one line ``knee: error: ...``);
-3 a numerical failure on good input (the mechanism does not assemble, a simulation diverges, a solve does
-not converge; one line ``knee: error: ...``); 130 interrupted (Ctrl-C). No existing file is overwritten
+Angles in degrees, lengths in mm. Exit codes: 0 success; 2 bad input or an output that cannot be written
+(one line ``knee: error: ...``); 3 a numerical failure on good input (the mechanism does not assemble, a
+simulation diverges, a solve does not converge; one line ``knee: error: ...``); 70 an unexpected error (a
+bug; one line, ``KNEE_DEBUG=1`` for the traceback); 130 interrupted (Ctrl-C). No existing file is overwritten
 unless ``--force`` is given.
 """
 
