@@ -103,17 +103,27 @@ def noise_weights(sd=None) -> np.ndarray:
 NOISE_SD = {"sagittal_deg": 1.0, "sagittal_mm": 0.5, "out_of_plane_deg": 2.0, "out_of_plane_mm": 1.5}
 
 
-def noise_sd(values: dict | None, where: str) -> dict:
-    """:data:`NOISE_SD` with ``values`` ({name: sd}) over it, checked: known names, positive finite numbers
-    (the measurement's standard deviations, deg and mm, that weigh the fit's components)."""
-    out = dict(NOISE_SD)
+def checked_numbers(values: dict | None, limits: dict, where: str, what: str) -> dict:
+    """``values`` ({name: number}) checked against ``limits`` ({name: largest}): known names, numbers in
+    (0, largest]; :class:`KneeInputError` naming ``where`` and ``what`` otherwise. Returns floats."""
+    out = {}
     for k, v in (values or {}).items():
-        if k not in NOISE_SD:
-            raise KneeInputError(f"{where}: unknown noise level {k!r} (known: {', '.join(NOISE_SD)})")
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0.0 < v < 1e3):
-            raise KneeInputError(f"{where}: noise level {k} must be a positive number, got {v!r}")
+        if k not in limits:
+            raise KneeInputError(f"{where}: unknown {what} {k!r} (known: {', '.join(limits)})")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0.0 < v <= limits[k]):
+            raise KneeInputError(f"{where}: {what} {k} must be a number in (0, {limits[k]:g}], got {v!r}")
         out[k] = float(v)
     return out
+
+
+#: The largest noise level (sd, deg or mm) accepted for each component group.
+NOISE_LIMITS = {k: 100.0 for k in NOISE_SD}
+
+
+def noise_sd(values: dict | None, where: str) -> dict:
+    """:data:`NOISE_SD` with ``values`` ({name: sd}) over it, checked (:func:`checked_numbers`): the
+    measurement's standard deviations, deg and mm, that weigh the fit's components."""
+    return {**NOISE_SD, **checked_numbers(values, NOISE_LIMITS, where, "noise level")}
 
 
 def synthetic_motion(params: MechanismParams, flexion_deg, noise: bool = True, seed: int = 0):
@@ -182,16 +192,8 @@ class FitBounds:
               "pf_tendon_mm": 20.0, "pf_length_mm": 30.0, "pf_pitch_mm_per_rad": 20.0}
 
     def updated(self, values: dict, where: str) -> "FitBounds":
-        """A copy with ``values`` ({name: number}) checked: known names, positive finite numbers within
-        :attr:`LIMITS`; :class:`KneeInputError` naming ``where`` otherwise."""
-        out = {}
-        for k, v in values.items():
-            if k not in self.LIMITS:
-                raise KneeInputError(f"{where}: unknown bound {k!r} (known: {', '.join(self.LIMITS)})")
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0.0 < v <= self.LIMITS[k]):
-                raise KneeInputError(f"{where}: bound {k} must be a number in (0, {self.LIMITS[k]:g}], got {v!r}")
-            out[k] = float(v)
-        return replace(self, **out)
+        """A copy with ``values`` ({name: number}) checked against :attr:`LIMITS` (:func:`checked_numbers`)."""
+        return replace(self, **checked_numbers(values, self.LIMITS, where, "bound"))
 
 
 class MotionFit:

@@ -163,7 +163,7 @@ class PFFit(MotionFit):
             return np.zeros((6 * len(self.alphas), self.n_var))
         return dq @ self._maps(w)[1]
 
-    #: The variables' names and units, and their bounds (the physical offset where each saturates).
+    #: The variables' names and units (their physical offsets: axis tilts, point moves, lengths, pitch).
     NAMES = ("axis_femur.tilt1", "axis_femur.tilt2", "point_femur.x", "point_femur.y", "axis_patella.tilt1",
              "axis_patella.tilt2", "point_patella.x", "point_patella.y", "tendon_tibia.x", "tendon_tibia.y",
              "tendon_tibia.z", "tendon_patella.x", "tendon_patella.y", "tendon_patella.z", "tendon_length",

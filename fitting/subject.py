@@ -264,10 +264,8 @@ def check_landmarks_on_bones(landmarks: Markups, surfaces: dict, folder: Path, s
         k = int(np.argmax(d))
         surf = f"{folder / bone}.*"
         negate = np.array([-1.0, -1.0, 1.0])
-        flipped = np.abs(q.signed_distance(p * negate)).max() <= LANDMARK_TOLERANCE_MM
-        if side == "left" and not flipped:  # the mirror of a left knee already negated x
-            flipped = np.abs(q.signed_distance(p * np.array([1.0, -1.0, 1.0]))).max() <= LANDMARK_TOLERANCE_MM
-        if flipped:
+        # (a left knee's landmarks and surfaces are both mirrored: a space error is still x and y negated)
+        if np.abs(q.signed_distance(p * negate)).max() <= LANDMARK_TOLERANCE_MM:
             raise KneeInputError(f"{where}: the {bone} landmarks lie on {surf} only with x and y negated: the "
                                  f"landmarks' coordinateSystem or the surface's SPACE comment is wrong (LPS vs RAS)")
         raise KneeInputError(f"{where}: landmark {labels[k]} is {d[k]:.1f} mm from the {bone} surface {surf} (at "
@@ -289,8 +287,6 @@ def _body_transform_motion(root: Path, m: dict, ct_lm: Markups, side: str) -> Mo
     Joint coordinates in the anatomical frames of the CT landmarks (knee.foundations.imaging.
     motion_from_body_transforms)."""
     where = f"{root / 'subject.toml'} [motion]"
-    if not isinstance(m, dict):
-        raise KneeInputError(f"{root / 'subject.toml'}: 'motion' must be a table ([motion])")
     for key in ("file", "femur", "tibia"):
         if not isinstance(m.get(key), str) or not m[key]:
             raise KneeInputError(f"{where}: field '{key}' must be a non-empty string")

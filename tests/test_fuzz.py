@@ -493,8 +493,9 @@ def test_ctrl_c_stops_at_once_with_one_line_and_no_results(tmp_path, base, comma
     assert code == 130, err
     assert "Traceback" not in err and err.strip().splitlines()[-1] == "knee: error: interrupted; no results written"
     assert not out.exists() and not [p for p in tmp_path.iterdir()]  # nothing, not even a hidden partial folder
-    # the demo's FEM workers are stopped, not waited for (before: about 20 s more, then results were written)
-    assert stop < 10.0, stop
+    # the demo's FEM workers are stopped, not waited for: none of them reports its case done (before, the
+    # demo waited about 20 s for them and wrote results); the time to stop is in scripts/bench_interrupt.py
+    assert " done after " not in err, err
 
 
 BOUND_CASES = [

@@ -87,7 +87,7 @@ def check_output(path, kind: str, force: bool, inputs=(), flag: str = "--out") -
         if not force and (kind == "file" or any(p.iterdir())):
             what = "exists" if kind == "file" else "exists and is not empty"
             raise KneeInputError(f"{flag} {p} {what}; not overwritten (use --force to replace it)")
-    _writable_folder(_nearest_existing(p.parent if not p.exists() else p.parent), p)
+    _writable_folder(_nearest_existing(p.parent), p)
     return p
 
 

@@ -29,7 +29,7 @@ from knee.models.fem.depth import CAMERA_PLACEMENTS, DepthNoise, camera_from_spe
 from knee.models.fem.methods import METHODS
 from knee.models.fem.scene import build_association_model
 from knee.models.mechanism import Mechanism
-from knee.models.mechanism.params import load_model, require_condylar_contacts
+from knee.models.mechanism.params import load_model
 
 
 def camera_list(text: str) -> list[str]:
@@ -61,7 +61,6 @@ def run(args) -> int:
     out = out_dir(args.out, args.force, inputs=tuple(Path(m) for m in (args.model, args.truth)
                                                      if m and Path(m).is_file()))
     params = load_model(args.model)
-    require_condylar_contacts(params, "the FEM comparison")
     if args.truth:
         truth, prior = Mechanism.from_name(args.truth), Mechanism(params)
         origin = f"truth {truth.params.name}, prior {params.name}"

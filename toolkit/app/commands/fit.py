@@ -12,7 +12,6 @@ from knee.app.reports.fit import check_output_folder, write_outputs
 from knee.fitting.optimize import FitBounds, noise_sd
 from knee.fitting.pipeline import fit_subject
 from knee.foundations.errors import KneeInputError
-from knee.foundations.files import check_output
 
 
 def key_values(text: str | None, flag: str) -> dict:
@@ -55,11 +54,8 @@ def parse_range(text: str) -> tuple[float, float] | None:
 
 def run(args) -> int:
     subject_dir, out_dir = Path(args.subject_dir), Path(args.out)
-    check_output_folder(subject_dir, out_dir, args.force)
-    for f in (args.also_trial or []) + (args.check_trial or []):
-        check_output(out_dir, "folder", True, inputs=(Path(f),))  # a trial inside the output folder
-        if not Path(f).is_file():
-            raise KneeInputError(f"motion file {f} not found")
+    trials = [Path(f) for f in (args.also_trial or []) + (args.check_trial or [])]
+    check_output_folder(subject_dir, out_dir, args.force, trials)
     bounds = parse_bounds(args.bounds)
     over = parse_range(args.assemble_over)
     noise = key_values(args.noise, "--noise")

@@ -13,7 +13,7 @@ from knee.app.reports.osteotomy import plot, report_markdown, write_recording
 from knee.foundations.errors import KneeInputError
 from knee.foundations.files import staged_folder
 from knee.models.gait import normative_trial, read_gait_csv
-from knee.models.mechanism.params import load_model, require_condylar_contacts, save_toml
+from knee.models.mechanism.params import load_model, save_toml
 from knee.models.osteotomy import Cut, compare, default_cut, osteotomy
 from knee.models.phantom import build_phantom
 
@@ -30,7 +30,6 @@ def run(args) -> int:
     params = load_model(args.model)
     if not math.isfinite(args.angle):
         raise KneeInputError(f"--angle must be a number of degrees, got {args.angle}")
-    require_condylar_contacts(params, "the osteotomy")
     if args.plane is None or args.hinge is None:
         ph = build_phantom(params)
         base = default_cut(args.bone, ph.tibia if args.bone == "tibia" else ph.femur, args.angle)

@@ -214,4 +214,3 @@ class CompareRecorder:
 
     def finish(self) -> None:
         R.close(self.rec)
-        self.rec.disconnect()

@@ -248,10 +248,10 @@ def write_recording(o: FitOutcome, path) -> Path:
     return Path(path)
 
 
-def check_output_folder(subject_dir: Path, out_dir: Path, force: bool) -> None:
-    """The output folder of a fit, checked before the fit: never the subject folder, inside it or around it;
-    writable; an existing, non-empty one only with ``force``."""
-    check_output(out_dir, "folder", force, inputs=(Path(subject_dir),))
+def check_output_folder(subject_dir: Path, out_dir: Path, force: bool, trials=()) -> None:
+    """The output folder of a fit, checked before the fit: never the subject folder or a trial's file,
+    inside them or around them; writable; an existing, non-empty one only with ``force``."""
+    check_output(out_dir, "folder", force, inputs=(Path(subject_dir), *trials))
 
 
 def write_outputs(o: FitOutcome, out_dir, recording: bool = True, figure: bool = True) -> dict[str, Path]:

@@ -149,5 +149,4 @@ class FemRecorder:
                                                               radii=[1.0]), static=True)
         if message:
             rec.log("log", rr.TextLog(message), static=True)
-        rec.flush()
-        rec.disconnect()  # closes the file (writes its footer)
+        R.close(rec)  # writes the file's footer
