@@ -211,5 +211,18 @@ def main(argv=None) -> int:
                      f"(KNEE_DEBUG=1 shows the traceback)", EXIT_INTERNAL)
 
 
+def entry() -> None:
+    """The installed ``knee`` script: :func:`main`, then exit with its code. After Ctrl-C, when every
+    partial output has already been removed and the workers stopped, the process leaves at once: the
+    interpreter's own teardown of the loaded numeric libraries takes about a second, which a user who
+    pressed Ctrl-C should not wait for."""
+    code = main()
+    if code == EXIT_INTERRUPTED:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    entry()
