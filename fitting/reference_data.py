@@ -228,3 +228,54 @@ def lenhart_subject(data_folder, out_dir, ct_row: int = 0, mri_row: int = -1) ->
             out.rmdir()
         shutil.move(str(tmp), str(out))
     return out
+
+
+def visible_human_subject(data_folder, out_dir, band_widths: float = 3.0) -> Path:
+    """Write the Visible Human Male's right knee (:func:`visible_human_knee`) as a subject folder for the
+    association FEM (no MRI, no motion: a subject's CT alone) in ``out_dir`` (new or empty); returns it.
+
+    ``ct/``: femur, tibia, patella and the skin (the whole body's skin clipped to ``band_widths`` femur
+    widths either side of the joint line and closed: the leg around the knee) in the scan's frame, mm; the
+    landmarks found on the bones (the hip centre and the malleoli where the bones reach them)."""
+    from knee.foundations.surfaces import SurfaceQuery, clip_to_slab
+
+    out = Path(out_dir)
+    if out.exists() and any(out.iterdir()):
+        raise KneeInputError(f"{out} exists and is not empty; not overwritten")
+    vh = visible_human_knee(data_folder)
+    lm = vh.landmarks
+    width = float(np.linalg.norm(lm["femur"]["LE"] - lm["femur"]["ME"]))
+    up = vh.frames["femur"][:3, 1]
+    y0 = 0.5 * (0.5 * (lm["femur"]["LE"] + lm["femur"]["ME"]) + 0.5 * (lm["tibia"]["LIT"] + lm["tibia"]["MIT"]))
+    skin = clip_to_slab(vh.skin, y0, up, band_widths * width, band_widths * width)
+    pieces = skin.split(only_watertight=True)
+    if len(pieces) > 1:  # two legs: the piece around this knee
+        knee = np.vstack([lm["femur"]["LE"], lm["femur"]["ME"], lm["tibia"]["LIT"], lm["tibia"]["MIT"]])
+        skin = max(pieces, key=lambda p: int(SurfaceQuery.of(p).inside(knee).sum()))
+    with tempfile.TemporaryDirectory(prefix="vhm-", dir=out.parent if out.parent.exists() else None) as t:
+        tmp = Path(t) / "subject"
+        (tmp / "ct").mkdir(parents=True)
+        for name, m in (("femur", vh.femur), ("tibia", vh.tibia), ("patella", vh.patella), ("skin", skin)):
+            # as a reader merges them: the femur, joined from patches, has vertices close enough to merge
+            # into non-manifold edges; closed again after the merge
+            m = trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.faces), process=True)
+            _, inv, cnt = np.unique(np.sort(m.faces, axis=1), axis=0, return_inverse=True, return_counts=True)
+            m.update_faces(cnt[inv.ravel()] == 1)  # back-to-back pairs of triangles: both dropped, holes closed
+            m = closed_surface(m, name)
+            write_surface(tmp / "ct" / f"{name}.ply", m)
+        labels, pts = [], []
+        for bone in ("femur", "tibia", "patella"):
+            for k, p in lm[bone].items():
+                if p is not None:
+                    labels.append(k)
+                    pts.append(p)
+        write_markups(tmp / "ct/landmarks.mrk.json", labels, pts)
+        (tmp / "subject.toml").write_text(
+            "# The Visible Human Male's right knee (U.S. National Library of Medicine; see ../shared/data's\n"
+            "# README), written by knee.fitting.reference_data.visible_human_subject from its public files.\n"
+            'format = "knee-subject"\nversion = 1\nname = "visible-human-male"\nside = "right"\n', encoding="utf-8")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        if out.exists():
+            out.rmdir()
+        shutil.move(str(tmp), str(out))
+    return out

@@ -66,6 +66,7 @@ from knee.models.prior import (
     TibiaCorrection,
     correct_tibia,
     estimate_flexion,
+    register_roughly,
     small_pose,
 )
 
@@ -534,3 +535,23 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     return Reconstruction(method, flex, steps, time.perf_counter() - t0, converged, T_world, model.grid, s.x.copy(),
                           notes=notes, icp_fitness=fitness, estimate=dataclasses.replace(est, skin=None),
                           tibia_correction=corr)
+
+
+#: Fraction of the points that must lie within 5 mm of the skin after the rough registration.
+MIN_REGISTERED = 0.3
+
+
+def reconstruct_in_camera(model: AssociationModel, prior: Mechanism, points_cam, T_init=None, method: str = "links",
+                          max_steps: int = 80):
+    """A method on points (P, 3) in a camera's frame where the knee's pose is known only roughly:
+    ``T_init`` (4, 4), camera to model (femur) frame, within about 30 deg and 50 mm, or None (a global
+    registration). The cloud is placed on the prior's skin (:func:`knee.models.prior.register_roughly`),
+    then the method runs in the model frame. Returns (:class:`Reconstruction`, the registration); the
+    reconstruction's world is the registration's frame, ``invert_poses(registration.T_model_world)`` takes
+    it to the camera. Raises :class:`KneeInputError` when the points do not show this knee."""
+    rough = register_roughly(skin_model(model, prior), points_cam, T_init)
+    if rough.inliers < MIN_REGISTERED:
+        raise KneeInputError(f"the points do not show this knee: after registration only {100 * rough.inliers:.0f} % "
+                             f"of them lie within 5 mm of its skin (RMS {rough.rms:.1f} mm)")
+    pts = transform_points(rough.T_model_world, points_cam)
+    return prior_method(method, model, prior, pts, max_steps=max_steps), rough

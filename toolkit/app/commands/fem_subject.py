@@ -42,11 +42,10 @@ from knee.foundations.errors import KneeInputError  # noqa: E402
 from knee.foundations.files import staged_folder  # noqa: E402
 from knee.foundations.imaging import write_surface  # noqa: E402
 from knee.foundations.pointclouds import backproject, load_point_cloud, read_depth_image  # noqa: E402
-from knee.models.fem.methods import prior_method, skin_model  # noqa: E402
+from knee.models.fem.methods import reconstruct_in_camera  # noqa: E402
 from knee.models.fem.scene import build_knee_model  # noqa: E402
 from knee.models.mechanism import Mechanism  # noqa: E402
 from knee.models.mechanism.params import load_model  # noqa: E402
-from knee.models.prior import register_roughly  # noqa: E402
 
 
 def _read_pose(path) -> np.ndarray:
@@ -107,19 +106,13 @@ def run(args) -> int:
     built = time.perf_counter() - t0
     say(f"  grid {len(model.grid.cells)} cells, bones {len(model.femur.el.cells)} + {len(model.tibia.el.cells)} "
         f"tetrahedra; {built:.1f} s")
-    skin = skin_model(model, prior)
     # the cloud on the model: a rough placement (initial pose or global registration), then the method
     T_init = None if init_pose is None else invert_poses(init_pose @ T_ct_model)  # camera -> model
     t1 = time.perf_counter()
-    rough = register_roughly(skin, points_cam, T_init)
-    if rough.inliers < 0.3:
-        raise KneeInputError(f"the points do not show this knee: after registration only {100 * rough.inliers:.0f} % "
-                             f"of them lie within 5 mm of its skin (RMS {rough.rms:.1f} mm)")
-    pts = transform_points(rough.T_model_world, points_cam)
     bar = None if args.quiet else ProgressBar()
     if bar:
-        bar(0.3, f"registered ({100 * rough.inliers:.0f} % within 5 mm); {method}")
-    recon = prior_method(method, model, prior, pts)
+        bar(0.1, f"registration and {method}")
+    recon, rough = reconstruct_in_camera(model, prior, points_cam, T_init, method)
     seconds = time.perf_counter() - t1
     lo, hi = (math.degrees(v) for v in prior.assembly_range)
     if recon.estimate is not None and recon.estimate.at_range_end:

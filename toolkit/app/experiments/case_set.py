@@ -1,0 +1,372 @@
+"""The benchmark's case set (issue "an honest benchmark of the FEM methods"): built deterministically from a
+seed into a folder, run by ``knee compare CASE_SET``.
+
+What makes the cases honest:
+
+- anatomy: subject folders read as any subject's are, the phantom (the bundled ``volunteer``'s synthetic
+  subject) and, where ``../shared/data`` is present, the Visible Human Male's real knee;
+- the truth's bone motion is not the prior's: the truth mechanism's motion (the phantom's own parameter
+  set; for the Visible Human, a template scaled to the knee) plus a random deviation of the tibia, 1-3 mm
+  and 2-5 deg ("mechanism+deviation"), and a measured motion, lenhart2015's dynamic MRI transferred as
+  joint coordinates ("measured"); the prior is the truth mechanism with every TF link endpoint moved
+  1-2 mm;
+- the truth's flexed skin comes from another model of the tissue (:mod:`knee.models.fem.tissue`:
+  conforming hyperelastic tetrahedra, not the association model's embedding grid), plus a smooth random
+  normal displacement of 0, 1 or 2 mm RMS (correlation length a quarter of the femoral width) standing
+  for what no model captures;
+- the depth image is rendered in the camera's own frame (RealSense-like noise, 1 mm at 400 mm, 2 %
+  dropout), from the paper's placement (350 mm, oblique: 35 deg toward lateral, raised 30 deg) and two
+  others; the methods get the image, the intrinsics and a rough pose of the knee in the camera's frame,
+  the truth turned 15-30 deg about the joint centre and moved 25-50 mm.
+
+Folder::
+
+    CASE_SET/case-set.toml     format, seed, the anatomies and the cases (truth poses: CT to camera)
+    CASE_SET/subjects/NAME/    the subject folders
+    CASE_SET/priors/NAME.toml  each subject's prior
+    CASE_SET/cases/ID/depth.npy, initial_pose.txt
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from knee.app.experiments.cases import CompareRow
+from knee.fitting.optimize import perturb_endpoints
+from knee.fitting.pipeline import anatomical_frames
+from knee.fitting.subject import load_subject
+from knee.fitting.subject_anatomy import subject_anatomy
+from knee.foundations.conventions import invert_poses, joint_to_pose, pose_to_joint, transform_points
+from knee.foundations.errors import KneeError, KneeInputError
+from knee.foundations.files import read_text
+from knee.foundations.pointclouds import backproject
+from knee.models.evaluation import target_errors, target_points
+from knee.models.fem.depth import DepthNoise, default_camera, render_depth
+from knee.models.fem.methods import reconstruct_in_camera
+from knee.models.fem.scene import build_knee_model, phantom_anatomy
+from knee.models.fem.tissue import TetTissue, smooth_surface_field
+from knee.models.mechanism import Mechanism
+from knee.models.mechanism.params import (
+    LINK_FEMUR,
+    LINK_LENGTH,
+    LINK_TIBIA,
+    N_LINKS,
+    link_entries,
+    load_model,
+    toml_string,
+)
+
+FORMAT = "knee-case-set"
+#: Camera placements: azimuth toward lateral, elevation toward proximal (deg), distance (mm); "paper" is
+#: seed 000's (about 35 cm, oblique).
+PLACEMENTS = {"paper": (35.0, 30.0, 350.0), "frontal": (0.0, 15.0, 400.0), "lateral": (70.0, 35.0, 300.0)}
+MISMATCHES_MM = (0.0, 1.0, 2.0)
+#: The rough pose given to the methods: the truth turned by 15-30 deg and moved by 25-50 mm.
+ROUGH_DEG, ROUGH_MM = (15.0, 30.0), (25.0, 50.0)
+#: The truth's deviation from its mechanism's motion: 2-5 deg, 1-3 mm.
+DEVIATION_DEG, DEVIATION_MM = (2.0, 5.0), (1.0, 3.0)
+MECHANISM_FLEXIONS = (30.0, 60.0, 90.0)
+MEASURED_FLEXIONS = (20.0, 30.0, 45.0)
+#: The skin mismatch field's correlation length, in femoral widths.
+FIELD_WIDTHS = 0.25
+
+
+def template_prior(anatomy, template_name: str = "volunteer"):
+    """A bundled parameter set scaled to ``anatomy``'s femoral width (link endpoints and lengths), TF only;
+    returns it and the scale."""
+    p = load_model(template_name)
+    ref, _ = phantom_anatomy(Mechanism(p))
+    s = anatomy.width / ref.width
+    v = p.to_vector().copy()
+    for i in range(N_LINKS):
+        for part in (LINK_FEMUR, LINK_TIBIA, LINK_LENGTH):
+            v[link_entries(i, part)] *= s
+    q = p.with_vector(v)
+    init = dataclasses.replace(p.initial, unknowns=p.initial.unknowns * np.r_[1.0, 1.0, s, s, s])
+    links = tuple(dataclasses.replace(lk, femur_radius=None if lk.femur_radius is None else lk.femur_radius * s)
+                  for lk in q.links)
+    return dataclasses.replace(q, pf=None, initial=init, name=f"{template_name}-scaled-{s:.3f}", links=links), s
+
+
+def measured_motion(data_folder, flexions_deg) -> np.ndarray:
+    """lenhart2015's measured TF joint coordinates (n, 6; rad, mm) at ``flexions_deg``, from its trial's
+    half that covers more flexion (linear interpolation)."""
+    import tempfile
+
+    from knee.fitting.reference_data import lenhart_subject
+
+    with tempfile.TemporaryDirectory() as tmp:
+        measured = load_subject(lenhart_subject(data_folder, Path(tmp) / "lenhart2015")).motion.tf
+    k = int(np.argmax(measured[:, 0]))
+    up = max((measured[: k + 1], measured[k:]), key=lambda h: np.ptp(h[:, 0]))
+    order = np.argsort(up[:, 0])
+    a = np.radians(np.asarray(flexions_deg, float))
+    q = np.column_stack([np.interp(a, up[order, 0], up[order, j]) for j in range(6)])
+    return q, up[order[0]]
+
+
+def transferred(q, start, scan_tf) -> np.ndarray:
+    """Joint coordinates ``q`` (n, 6) of one knee carried to another scanned at ``scan_tf``: the rotations
+    as measured; the translations as the other knee's at its scan plus the change from ``start`` (the two
+    knees' origins differ; the change of their translations over flexion is what carries over)."""
+    q = np.array(q, float)
+    q[:, 3:] = np.asarray(scan_tf)[3:] + (q[:, 3:] - np.asarray(start)[3:])
+    return q
+
+
+def _random_pose(rng, deg_range, mm_range, centre) -> np.ndarray:
+    """A rotation of a random magnitude in ``deg_range`` about a random axis through ``centre``, then a
+    translation of a random length in ``mm_range`` in a random direction (4, 4)."""
+    axis, d = rng.normal(size=3), rng.normal(size=3)
+    R = Rotation.from_rotvec(math.radians(rng.uniform(*deg_range)) * axis / np.linalg.norm(axis)).as_matrix()
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = centre - R @ centre + rng.uniform(*mm_range) * d / np.linalg.norm(d)
+    return T
+
+
+@dataclass
+class Anatomy:
+    name: str
+    subject: Path
+    prior: Path
+    truth_mechanism: str
+    notes: str = ""
+
+
+def _write_prior(path: Path, params) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(params.to_toml(), encoding="utf-8")
+    return path
+
+
+def _assembling_prior(params, seed: int):
+    """The truth's parameter set with every TF link endpoint moved 1-2 mm, drawn from seeds ``seed + 1``
+    on until it assembles over 0-120 deg (as a fitted prior does, whose fit is refused otherwise)."""
+    for k in range(seed + 1, seed + 50):
+        p = dataclasses.replace(perturb_endpoints(params, 1.0, 2.0, seed=k), name=f"{params.name}-perturbed")
+        try:
+            m = Mechanism(p)
+        except KneeError:
+            continue
+        lo, hi = m.assembly_range
+        if lo <= 0.0 and hi >= math.radians(120.0):
+            return p, k
+    raise KneeError(f"no perturbed prior of {params.name} assembles over 0-120 deg")
+
+
+def _anatomies(out: Path, data, seed: int, names) -> list[tuple[Anatomy, Mechanism, object]]:
+    """(entry, truth mechanism, prior params) of each anatomy, their subject folders and priors written."""
+    from knee.fitting.reference_data import visible_human_subject
+    from knee.fitting.synthetic import make_subject
+
+    res = []
+    for name in names:
+        if name == "phantom":
+            folder = make_subject(out / "subjects" / name, model="volunteer", seed=seed)
+            truth = Mechanism.from_name("volunteer")
+            note = "the bundled volunteer's synthetic subject; truth mechanism volunteer"
+        elif name == "visible-human-male":
+            folder = visible_human_subject(data, out / "subjects" / name)
+            template, s = template_prior(subject_anatomy(load_subject(folder)))
+            truth = Mechanism(template)
+            note = f"the Visible Human Male's right knee; truth mechanism volunteer scaled by {s:.3f} to its width"
+        else:
+            raise KneeInputError(f"unknown anatomy {name!r}: phantom or visible-human-male")
+        prior, k = _assembling_prior(truth.params, seed)
+        note += f"; prior: every TF link endpoint moved 1-2 mm (seed {k}, the first that assembles over 0-120 deg)"
+        path = _write_prior(out / "priors" / f"{name}.toml", prior)
+        res.append((Anatomy(name, folder.relative_to(out), path.relative_to(out), truth.params.name, note), truth,
+                    prior))
+    return res
+
+
+def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible-human-male"),
+                   families=("mechanism+deviation", "measured"), progress: Callable[[str], None] | None = None) -> Path:
+    """Build the case set into ``out`` (a new folder; see the module docstring). ``data``: the folder
+    holding ``visible-human-male/`` and ``lenhart2015/``; without it, the phantom's mechanism cases only."""
+    out = Path(out)
+    rng = np.random.default_rng(seed)
+    say = progress or (lambda text: None)
+    if data is None or not Path(data).is_dir():
+        anatomies = tuple(a for a in anatomies if a == "phantom")
+        families = tuple(f for f in families if f != "measured")
+    cases = []
+    entries = []
+    for entry, truth, prior_params in _anatomies(out, data, seed, anatomies):
+        entries.append(entry)
+        subject = load_subject(out / entry.subject)
+        anatomy = subject_anatomy(subject, prior_params)
+        Tf = anatomical_frames(subject)["femur"]  # femur frame (the model's) -> CT
+        say(f"{entry.name}: the tissue model's mesh")
+        tissue = TetTissue(anatomy, seed=seed)
+        scan = anatomy.scan_tf
+        poses = []
+        for family in families:
+            if family == "mechanism+deviation":
+                T = joint_to_pose(truth.motion_at(np.radians(MECHANISM_FLEXIONS))[0])
+                T_scan = joint_to_pose(truth.motion_at(np.array([scan[0]]))[0][0])
+                for fl, Tm in zip(MECHANISM_FLEXIONS, T):
+                    dev = _random_pose(rng, DEVIATION_DEG, DEVIATION_MM, np.zeros(3))
+                    poses.append((family, fl, Tm @ invert_poses(T_scan) @ anatomy.tibia_pose @ dev))
+            elif family == "measured":
+                q, start = measured_motion(data, MEASURED_FLEXIONS)
+                for fl, Tm in zip(MEASURED_FLEXIONS, joint_to_pose(transferred(q, start, scan))):
+                    poses.append((family, fl, Tm))
+            else:
+                raise KneeInputError(f"unknown case family {family!r}")
+        centre = np.array([0.0, anatomy.joint_y, 0.0])
+        for family, fl, T_tibia in poses:
+            t0 = time.perf_counter()
+            posed = tissue.pose(T_tibia)
+            skin = posed.skin(tissue)
+            say(f"{entry.name} {family} {fl:g} deg: truth skin in {time.perf_counter() - t0:.0f} s "
+                f"({posed.inverted} inverted tetrahedra)")
+            normals = np.asarray(skin.vertex_normals)
+            for mm in MISMATCHES_MM:
+                verts = smooth_surface_field(skin.vertices, normals, mm, FIELD_WIDTHS * anatomy.width, rng)
+                cams = PLACEMENTS if mm == 1.0 else {"paper": PLACEMENTS["paper"]}
+                for cname, (az, el, dist) in cams.items():
+                    cam = default_camera(distance=dist, azimuth_deg=az, elevation_deg=el, target=centre)
+                    depth = DepthNoise().apply(render_depth(verts, skin.faces, cam), rng)
+                    cid = f"{entry.name}-{family.split('+')[0]}-{fl:g}-{mm:g}mm-{cname}"
+                    folder = out / "cases" / cid
+                    folder.mkdir(parents=True)
+                    np.save(folder / "depth.npy", depth.astype(np.float32))
+                    T_cam_model = cam.T_cam_world  # the camera was placed in the femur (model) frame
+                    rough = T_cam_model @ _random_pose(rng, ROUGH_DEG, ROUGH_MM, centre)
+                    np.savetxt(folder / "initial_pose.txt", rough @ invert_poses(Tf), fmt="%.9g")
+                    rel = T_tibia @ invert_poses(anatomy.tibia_pose)
+                    cases.append({
+                        "id": cid, "anatomy": entry.name, "family": family,
+                        "flexion_deg": round(math.degrees(pose_to_joint(T_tibia)[0]), 3), "mismatch_mm": mm,
+                        "camera": cname, "depth": f"cases/{cid}/depth.npy",
+                        "initial_pose": f"cases/{cid}/initial_pose.txt",
+                        "intrinsics": [cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]],
+                        "truth_tf": pose_to_joint(T_tibia).tolist(),
+                        "T_camera_femur_ct": (T_cam_model @ invert_poses(Tf)).tolist(),
+                        "T_camera_tibia_ct": (T_cam_model @ rel @ invert_poses(Tf)).tolist()})
+    _write_index(out, seed, entries, cases)
+    return out
+
+
+def _write_index(out: Path, seed: int, entries, cases) -> None:
+    lines = [f'format = "{FORMAT}"', "version = 1", f"seed = {int(seed)}", ""]
+    for e in entries:
+        lines += ["[[anatomy]]", f"name = {toml_string(e.name)}", f"subject = {toml_string(str(e.subject))}",
+                  f"prior = {toml_string(str(e.prior))}", f"truth_mechanism = {toml_string(e.truth_mechanism)}",
+                  f"notes = {toml_string(e.notes)}", ""]
+    for c in cases:
+        lines.append("[[case]]")
+        for k, v in c.items():
+            lines.append(f"{k} = {toml_string(v) if isinstance(v, str) else json.dumps(v)}")
+        lines.append("")
+    (out / "case-set.toml").write_text("\n".join(lines), encoding="utf-8")
+
+
+def is_case_set(folder) -> bool:
+    return (Path(folder) / "case-set.toml").is_file()
+
+
+def read_case_set(folder) -> dict:
+    """The case set's index (``case-set.toml``), checked: a clear error naming what is wrong."""
+    folder = Path(folder)
+    path = folder / "case-set.toml"
+    try:
+        index = tomllib.loads(read_text(path))
+    except tomllib.TOMLDecodeError as e:
+        raise KneeInputError(f"{path}: not valid TOML ({e})") from None
+    if index.get("format") != FORMAT:
+        raise KneeInputError(f"{path}: not a case set (format must be {FORMAT!r})")
+    names = {a.get("name") for a in index.get("anatomy", [])}
+    for c in index.get("case", []):
+        missing = [k for k in ("id", "anatomy", "depth", "intrinsics", "initial_pose", "truth_tf",
+                               "T_camera_femur_ct", "T_camera_tibia_ct") if k not in c]
+        if missing or c["anatomy"] not in names:
+            raise KneeInputError(f"{path}: case {c.get('id', '?')}: " + (f"missing {', '.join(missing)}" if missing
+                                                                         else f"unknown anatomy {c['anatomy']!r}"))
+    if not index.get("case"):
+        raise KneeInputError(f"{path}: no cases")
+    return index
+
+
+@dataclass
+class CaseRow(CompareRow):
+    """A method on one case of a case set (:class:`CompareRow` plus the case's description)."""
+
+    case: str = ""
+    anatomy: str = ""
+    family: str = ""
+    mismatch_mm: float = float("nan")
+    registration_inliers: float = float("nan")
+
+
+def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T_ct_model) -> CaseRow:
+    """One method on one case: the depth image and the rough pose in, the bones in the camera's frame out,
+    measured at the target points (ACL/PCL footprints from the prior's attachments, the epiphyses)."""
+    depth = np.load(folder / case["depth"])
+    fx, fy, cx, cy = case["intrinsics"]
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    pts = backproject(depth.astype(float), K)
+    init = np.loadtxt(folder / case["initial_pose"]).reshape(4, 4)
+    model = build_knee_model(anatomy, prior=prior)
+    t0 = time.perf_counter()
+    recon, rough = reconstruct_in_camera(model, prior, pts, invert_poses(init @ T_ct_model), method)
+    wall = time.perf_counter() - t0
+    T_cam_world = invert_poses(rough.T_model_world)
+    fa = np.vstack([prior.params.link(n).femur for n in ("acl", "pcl")])
+    ta = transform_points(anatomy.tibia_pose, np.vstack([prior.params.link(n).tibia for n in ("acl", "pcl")]))
+    tg = target_points(anatomy.femur.vertices, anatomy.tibia.vertices, fa, ta, anatomy.joint_y, anatomy.joint_y)
+    true_f = transform_points(np.asarray(case["T_camera_femur_ct"]) @ T_ct_model, tg.femur)
+    true_t = transform_points(np.asarray(case["T_camera_tibia_ct"]) @ T_ct_model, tg.tibia)
+    est_f = transform_points(T_cam_world, recon.locate("femur", tg.femur))
+    est_t = transform_points(T_cam_world, recon.locate("tibia", tg.tibia))
+    e = target_errors(tg, est_f, est_t, true_f, true_t)
+    corr = recon.tibia_correction
+    applied = corr is not None and corr.applied
+    return CaseRow(method, case["camera"], float(case["flexion_deg"]), recon.flexion_deg, e.femur.footprints.mean,
+                   e.tibia.footprints.mean, e.femur.epiphysis.mean, e.tibia.epiphysis.mean, recon.steps, wall,
+                   recon.converged, float(np.linalg.norm(corr.rotation_deg)) if applied else float("nan"),
+                   float(np.linalg.norm(corr.translation_mm)) if applied else float("nan"), "; ".join(recon.notes),
+                   case=case["id"], anatomy=case["anatomy"], family=case["family"],
+                   mismatch_mm=float(case["mismatch_mm"]), registration_inliers=rough.inliers)
+
+
+def run_case_set(folder, methods, progress: Callable[[int, int, str], None] | None = None,
+                 select: Callable[[dict], bool] | None = None) -> list[CaseRow]:
+    """Every method on every case of a case set (``select``: a filter on the cases); a run that fails is a
+    row with its reason."""
+    folder = Path(folder)
+    index = read_case_set(folder)
+    cases = [c for c in index["case"] if select is None or select(c)]
+    setup = {}
+    for a in index["anatomy"]:
+        if not any(c["anatomy"] == a["name"] for c in cases):
+            continue
+        prior = Mechanism(load_model(folder / a["prior"]))
+        subject = load_subject(folder / a["subject"])
+        setup[a["name"]] = (subject_anatomy(subject, prior.params), prior, anatomical_frames(subject)["femur"])
+    rows, total = [], len(cases) * len(methods)
+    for i, c in enumerate(cases):
+        anatomy, prior, T_ct_model = setup[c["anatomy"]]
+        for j, m in enumerate(methods):
+            if progress:
+                progress(i * len(methods) + j, total, f"{m} on {c['id']}")
+            try:
+                rows.append(run_case(folder, c, m, anatomy, prior, T_ct_model))
+            except KneeError as e:
+                rows.append(CaseRow(m, c["camera"], float(c["flexion_deg"]), failed=str(e), case=c["id"],
+                                    anatomy=c["anatomy"], family=c["family"], mismatch_mm=float(c["mismatch_mm"])))
+    if progress:
+        progress(total, total, "done")
+    return rows
