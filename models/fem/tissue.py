@@ -13,11 +13,12 @@ favours the methods that use it. This one shares none of it:
   invariant, finite for inverted elements), Poisson's ratio 0.4 by default (the model uses 0.3);
 - boundary conditions: the nodes on the bone surfaces move exactly with their bone (the femur held, the
   tibia at the given pose), nothing else holds the tissue;
-- solution: the static equilibrium as the minimum of the total energy over the free nodes (L-BFGS on
-  the analytic gradient), reached through increments of the tibia's motion.
+- solution: the static equilibrium as the minimum of the total energy over the free nodes (Newton's
+  method with each element's Hessian projected to positive semi-definite, a backtracking line search),
+  reached through increments of the tibia's motion of at most 20 deg.
 
 The skin surface posed is the skin's own triangulation coarsened to the node spacing (its vertices are
-the mesh's skin nodes). Everything is scaled by the anatomy's femoral width (no millimetre constants).
+the mesh's skin nodes; the few that no tetrahedron of some volume holds follow their neighbours). Everything is scaled by the anatomy's femoral width (no millimetre constants).
 Frames: the femur's anatomical frame (:class:`knee.models.fem.anatomy.KneeAnatomy`), mm.
 """
 
@@ -174,8 +175,7 @@ def tissue_mesh(anatomy, edge: float | None = None, seed: int = 0) -> TissueMesh
     tets[vol6 < 0] = tets[vol6 < 0][:, [0, 2, 1, 3]]
     e = np.linalg.norm(p[:, [1, 2, 3, 2, 3, 3]] - p[:, [0, 0, 0, 1, 1, 2]], axis=2)
     quality = 6.0 * np.sqrt(2.0) * np.abs(vol6) / 6.0 / np.sqrt((e ** 2).mean(axis=1)) ** 3
-    longest = e.max(axis=1)
-    tets = tets[(quality > 0.02) & (longest < 3.0 * h)]
+    tets = tets[quality > 0.02]
     return TissueMesh(X, tets, np.arange(ns, ns + nf), np.arange(ns + nf, ns + nf + nt), np.asarray(skin.faces), h)
 
 
@@ -187,7 +187,6 @@ class TetTissue:
 
     def __init__(self, anatomy, edge: float | None = None, E: float = 1.0, nu: float = 0.4, seed: int = 0):
         self.anatomy = anatomy
-        self.verbose = False
         m = tissue_mesh(anatomy, edge, seed)
         n_skin = int(m.skin_faces.max()) + 1
         self._passive = _passive_weights(m.X, m.tets, m.edge, n_skin)
@@ -310,18 +309,14 @@ class TetTissue:
                 if t < 1e-6:
                     raise KneeError("the tissue model's equilibrium did not converge (no descent)")
             x = y
-            if self.verbose:
-                j = self.free[self._skin_free[np.argmax(np.linalg.norm(d[self._skin_free], axis=1))]]
-                print(f"  newton {it}: energy {e1:.6g} step {step:.3g} t {t:g} node {j} at {np.round(x[j], 1)} "
-                      f"rest {np.round(self.mesh.X[j], 1)}")
         raise KneeError(f"the tissue model's equilibrium did not converge in {max_iterations} Newton iterations "
                         f"(last step {step:.2g} mm)")
 
 
 @dataclass
 class PosedTissue:
-    """A pose's equilibrium: node positions (N, 3), inverted tetrahedra, L-BFGS iterations, the largest
-    nodal force left over (relative to mu h^2), increments."""
+    """A pose's equilibrium: node positions (N, 3), inverted tetrahedra, Newton iterations, the last
+    step (mm, 99th percentile over the skin nodes), increments."""
 
     x: np.ndarray
     inverted: int

@@ -13,6 +13,7 @@
     knee osteotomy MODEL --bone tibia|femur --angle 8 [--plane px,py,pz,nx,ny,nz] [--hinge hx,hy,hz,ax,ay,az]
                    [--release mcl] [--trial CSV] [--mass 72] [--height 1.75] [--out DIR] [--force]
     knee compare MODEL [--truth MODEL] [--flexion 30:120:15] [--cameras oblique,frontal,lateral] [--out DIR]
+    knee compare CASE_SET [--methods links,kinematics,init,paper] [--only ID,...] [--out DIR]
     knee fem MODEL [--flexion 90] [--truth MODEL] [--camera oblique|frontal|lateral|AZ,EL,DIST] [--rrd FILE]
              [--cloud FILE | --depth FILE --intrinsics fx,fy,cx,cy [--depth-scale 1]] [--pose FILE]
 
@@ -137,13 +138,15 @@ def build_parser() -> argparse.ArgumentParser:
     _gait_options(op)
     op.add_argument("--out", default="knee-osteotomy", help="output folder (knee-osteotomy)")
     op.add_argument("--force", action="store_true")
-    co = sub.add_parser("compare", help="the four ways to use the mechanism with the FEM: on a subject's own knee "
-                                         "(SUBJECT_DIR --prior --truth-motion) or a parameter set's standard cases")
-    co.add_argument("model", help="a subject folder with ct/skin.stl, or the prior: a bundled parameter set or a "
-                                  "TOML file")
+    co = sub.add_parser("compare", help="the four ways to use the mechanism with the FEM: on a case set "
+                                         "(scripts/build_case_set.py), a subject's own knee (SUBJECT_DIR --prior "
+                                         "--truth-motion) or a parameter set's standard cases")
+    co.add_argument("model", help="a case set folder, a subject folder with ct/skin.stl, or the prior: a bundled "
+                                  "parameter set or a TOML file")
     co.add_argument("--prior", help="subject: the fitted parameter file, the kinematic prior")
     co.add_argument("--truth-motion", help="subject: a measured motion (the subject folder's motion.csv format) whose "
                                            "rows pose the truth")
+    co.add_argument("--only", help="case set: run only the cases whose id contains one of these (comma list)")
     co.add_argument("--frames", type=int, default=4, help="subject: how many rows of the motion, spread over it (4)")
     co.add_argument("--truth", help="parameter set generating the truth (default: MODEL, with the prior = MODEL "
                                     "perturbed by --perturb)")

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from knee.app.console import ProgressBar, flexion_list, out_dir, say
+from knee.app.experiments.case_set import is_case_set, read_case_set, run_case_set
 from knee.app.experiments.cases import compare_cases, prior_floor, truth_phantom
 from knee.app.experiments.subject_cases import compare_subject
 from knee.app.reports.compare import (
@@ -45,6 +46,8 @@ def camera_list(text: str) -> list[str]:
 
 
 def run(args) -> int:
+    if Path(args.model).is_dir() and is_case_set(args.model):
+        return run_cases(args)
     if Path(args.model).is_dir():
         return run_subject(args)
     for flag in ("prior", "truth_motion"):
@@ -141,5 +144,37 @@ def run_subject(args) -> int:
     for m, v in summary(rows, methods).items():
         print(f"{m:11s} cases {v.cases}  failed {v.failed}  footprints {v.footprints_mm:.2f} mm  epiphysis "
               f"{v.epiphysis_mm:.2f} mm  |flexion error| {v.flexion_error_deg:.2f} deg  wall {v.wall_s:.1f} s")
+    print(f"table: {out / 'compare.csv'}, {out / 'compare.md'}\nplot: {out / 'compare.png'}")
+    return 0
+
+
+def run_cases(args) -> int:
+    """``knee compare CASE_SET``: every method on every case of a case set (``scripts/build_case_set.py``;
+    :mod:`knee.app.experiments.case_set`), with the table, the targets and the figure."""
+    from knee.app.reports import case_set as report
+
+    for flag in ("prior", "truth_motion", "truth"):
+        if getattr(args, flag):
+            raise KneeInputError(f"--{flag.replace('_', '-')} does not go with a case set (its truth and priors are in it)")
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    if not methods or any(m not in METHODS for m in methods):
+        raise KneeInputError(f"--methods must be a comma list of {', '.join(METHODS)}, got {args.methods!r}")
+    index = read_case_set(args.model)
+    out = out_dir(args.out, args.force, inputs=(Path(args.model),))
+    only = [a.strip() for a in (args.only or "").split(",") if a.strip()]
+    select = (lambda c: any(o in c["id"] for o in only)) if only else None
+    n = sum(1 for c in index["case"] if select is None or select(c))
+    if n == 0:
+        raise KneeInputError(f"--only {args.only!r} selects none of the {len(index['case'])} cases")
+    say(f"knee compare: case set {args.model} (seed {index.get('seed')}), {n} cases x {len(methods)} methods")
+    bar = ProgressBar()
+    rows = run_case_set(args.model, methods, None if args.quiet else (lambda i, k, t: bar(i / k, t)), select)
+    title = f"Case set {Path(args.model).name} (seed {index.get('seed')})"
+    with staged_folder(out) as tmp:
+        write_csv(rows, tmp / "compare.csv", extra=("case", "anatomy", "family", "mismatch_mm", "registration_inliers"))
+        (tmp / "compare.md").write_text(report.markdown(rows, methods, title), encoding="utf-8")
+        report.plot(rows, methods, tmp / "compare.png", title)
+    for line in report.targets(rows):
+        print(line)
     print(f"table: {out / 'compare.csv'}, {out / 'compare.md'}\nplot: {out / 'compare.png'}")
     return 0

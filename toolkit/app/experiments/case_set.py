@@ -192,9 +192,13 @@ def _anatomies(out: Path, data, seed: int, names) -> list[tuple[Anatomy, Mechani
 
 
 def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible-human-male"),
-                   families=("mechanism+deviation", "measured"), progress: Callable[[str], None] | None = None) -> Path:
+                   families=("mechanism+deviation", "measured"), progress: Callable[[str], None] | None = None,
+                   mechanism_flexions=MECHANISM_FLEXIONS, measured_flexions=MEASURED_FLEXIONS,
+                   mismatches=MISMATCHES_MM) -> Path:
     """Build the case set into ``out`` (a new folder; see the module docstring). ``data``: the folder
-    holding ``visible-human-male/`` and ``lenhart2015/``; without it, the phantom's mechanism cases only."""
+    holding ``visible-human-male/`` and ``lenhart2015/``; without it, the phantom's mechanism cases only.
+    Each pose is seen from the paper's placement at every skin mismatch, and from the other placements at
+    1 mm (or at the middle mismatch given)."""
     out = Path(out)
     rng = np.random.default_rng(seed)
     say = progress or (lambda text: None)
@@ -214,14 +218,14 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
         poses = []
         for family in families:
             if family == "mechanism+deviation":
-                T = joint_to_pose(truth.motion_at(np.radians(MECHANISM_FLEXIONS))[0])
+                T = joint_to_pose(truth.motion_at(np.radians(mechanism_flexions))[0])
                 T_scan = joint_to_pose(truth.motion_at(np.array([scan[0]]))[0][0])
-                for fl, Tm in zip(MECHANISM_FLEXIONS, T):
+                for fl, Tm in zip(mechanism_flexions, T):
                     dev = _random_pose(rng, DEVIATION_DEG, DEVIATION_MM, np.zeros(3))
                     poses.append((family, fl, Tm @ invert_poses(T_scan) @ anatomy.tibia_pose @ dev))
             elif family == "measured":
-                q, start = measured_motion(data, MEASURED_FLEXIONS)
-                for fl, Tm in zip(MEASURED_FLEXIONS, joint_to_pose(transferred(q, start, scan))):
+                q, start = measured_motion(data, measured_flexions)
+                for fl, Tm in zip(measured_flexions, joint_to_pose(transferred(q, start, scan))):
                     poses.append((family, fl, Tm))
             else:
                 raise KneeInputError(f"unknown case family {family!r}")
@@ -233,9 +237,9 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
             say(f"{entry.name} {family} {fl:g} deg: truth skin in {time.perf_counter() - t0:.0f} s "
                 f"({posed.inverted} inverted tetrahedra)")
             normals = np.asarray(skin.vertex_normals)
-            for mm in MISMATCHES_MM:
+            for mm in mismatches:
                 verts = smooth_surface_field(skin.vertices, normals, mm, FIELD_WIDTHS * anatomy.width, rng)
-                cams = PLACEMENTS if mm == 1.0 else {"paper": PLACEMENTS["paper"]}
+                cams = PLACEMENTS if mm == mismatches[len(mismatches) // 2] else {"paper": PLACEMENTS["paper"]}
                 for cname, (az, el, dist) in cams.items():
                     cam = default_camera(distance=dist, azimuth_deg=az, elevation_deg=el, target=centre)
                     depth = DepthNoise().apply(render_depth(verts, skin.faces, cam), rng)

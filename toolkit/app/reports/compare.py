@@ -81,15 +81,16 @@ def targets_check(summ: dict[str, MethodSummary]) -> list[str]:
     return lines
 
 
-def write_csv(rows: list[CompareRow], path) -> None:
-    """The comparison table as CSV, one row per run, columns :data:`COLUMNS`."""
+def write_csv(rows: list[CompareRow], path, extra=()) -> None:
+    """The comparison table as CSV, one row per run, columns :data:`COLUMNS` (then ``extra``)."""
     with open(path, "w", newline="", encoding="utf-8") as fh:
-        w = csv.DictWriter(fh, fieldnames=COLUMNS, extrasaction="ignore")
+        w = csv.DictWriter(fh, fieldnames=list(COLUMNS) + list(extra), extrasaction="ignore")
         w.writeheader()
         for r in rows:
             d = dataclasses.asdict(r)
             if r.failed:  # a failed run has no figures
-                d = {k: (v if k in ("method", "camera", "flexion_true_deg", "failed") else "") for k, v in d.items()}
+                d = {k: (v if k in ("method", "camera", "flexion_true_deg", "failed") + tuple(extra) else "")
+                     for k, v in d.items()}
             w.writerow({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in d.items()})
 
 

@@ -1,0 +1,190 @@
+"""The benchmark's independent truth: the tetrahedral tissue model (closed forms, finite differences,
+invariances), the skin mismatch field, and the case set (its truth, its rough poses, its runner)."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from knee.foundations.conventions import joint_to_pose
+from knee.models.fem.tissue import TetTissue, neo_hookean, smooth_surface_field
+
+MU, LAM = 0.36, 1.43
+
+
+def _random_F(rng, n=6):
+    return np.eye(3)[None] + 0.3 * rng.normal(size=(n, 3, 3))
+
+
+def test_neo_hookean_closed_form_uniaxial_and_rest():
+    s = 1.3
+    F = np.diag([s, 1.0, 1.0])[None]
+    W, P, _ = neo_hookean(F, MU, LAM)
+    assert W[0] == pytest.approx(0.5 * MU * (s * s - 1) - MU * (s - 1) + 0.5 * LAM * (s - 1) ** 2, rel=1e-12)
+    # P_11 = mu s + (lam (J - 1) - mu) * 1 (the cofactor of diag(s, 1, 1) is diag(1, s, s))
+    assert P[0, 0, 0] == pytest.approx(MU * s + LAM * (s - 1) - MU, rel=1e-12)
+    W0, P0, _ = neo_hookean(np.eye(3)[None], MU, LAM)
+    assert abs(W0[0]) < 1e-15 and np.abs(P0).max() < 1e-15  # stress-free at rest
+
+
+def test_neo_hookean_stress_and_hessian_match_finite_differences():
+    rng = np.random.default_rng(0)
+    F = _random_F(rng)
+    W, P, H = neo_hookean(F, MU, LAM, hessian=True)
+    h = 1e-6
+    for a in range(3):
+        for b in range(3):
+            D = np.zeros((3, 3))
+            D[a, b] = h
+            Wp, Pp, _ = neo_hookean(F + D, MU, LAM)
+            Wm, Pm, _ = neo_hookean(F - D, MU, LAM)
+            np.testing.assert_allclose((Wp - Wm) / (2 * h), P[:, a, b], rtol=1e-6, atol=1e-8)
+            # column-major flattening: entry (a, b) of F is index 3 b + a
+            col = (Pp - Pm).transpose(0, 2, 1).reshape(len(F), 9) / (2 * h)
+            np.testing.assert_allclose(col, H[:, :, 3 * b + a], rtol=1e-5, atol=1e-7)
+
+
+def test_neo_hookean_is_rotation_invariant():
+    rng = np.random.default_rng(1)
+    F = _random_F(rng)
+    Q = Rotation.random(len(F), random_state=2).as_matrix()
+    np.testing.assert_allclose(neo_hookean(Q @ F, MU, LAM)[0], neo_hookean(F, MU, LAM)[0], rtol=1e-10, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def phantom_tissue():
+    from knee.models.fem.scene import phantom_anatomy
+    from knee.models.mechanism import Mechanism
+
+    mech = Mechanism.from_name("volunteer")
+    anatomy, _ = phantom_anatomy(mech)
+    return TetTissue(anatomy), mech
+
+
+def test_tissue_mesh_conforms_and_gradient_matches_energy(phantom_tissue):
+    tissue, _ = phantom_tissue
+    m = tissue.mesh
+    p = m.X[m.tets]
+    vol6 = np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0])
+    assert (vol6 > 0).all()  # positively oriented, none degenerate
+    # the tetrahedra fill the skin less the bones (to the coarsened skin's faceting and the bones' sampling)
+    skin_volume = tissue.anatomy.skin.volume - tissue.anatomy.femur.volume - tissue.anatomy.tibia.volume
+    assert vol6.sum() / 6 == pytest.approx(skin_volume, rel=0.08)
+    rng = np.random.default_rng(3)
+    x = m.X + 0.5 * rng.normal(size=m.X.shape)
+    e, g, K = tissue.energy(x, hessian=True)
+    d = np.zeros_like(x)
+    d[tissue.free[:50]] = rng.normal(size=(50, 3))
+    h = 1e-5
+    fd = (tissue.energy(x + h * d)[0] - tissue.energy(x - h * d)[0]) / (2 * h)
+    assert fd == pytest.approx(float(np.sum(g * d)), rel=1e-5)
+    # the projected stiffness is symmetric positive semi-definite
+    assert abs(K - K.T).max() < 1e-9 * abs(K).max()
+    v = rng.normal(size=K.shape[0])
+    assert v @ (K @ v) > 0
+
+
+def test_tissue_rigid_motion_is_free_and_rest_pose_is_exact(phantom_tissue):
+    tissue, _ = phantom_tissue
+    m = tissue.mesh
+    Q = Rotation.from_rotvec([0.3, -0.5, 0.2]).as_matrix()
+    e, g, _ = tissue.energy(m.X @ Q.T + [5.0, -3.0, 8.0])
+    assert abs(e) < 1e-8 and np.abs(g).max() < 1e-8
+    posed = tissue.pose(tissue.T_scan)
+    np.testing.assert_allclose(posed.x, m.X, atol=1e-9)
+    assert posed.inverted == 0
+
+
+def test_tissue_posed_follows_the_bones_and_differs_from_a_rigid_blend(phantom_tissue):
+    tissue, mech = phantom_tissue
+    m = tissue.mesh
+    T = joint_to_pose(mech.solve(math.radians(45.0))[0])
+    posed = tissue.pose(T)
+    # the bone nodes exactly where their bones are; the thigh's far skin stays, the shank's far skin turns
+    rel = T @ np.linalg.inv(tissue.T_scan)
+    np.testing.assert_allclose(posed.x[m.tibia_nodes], m.X[m.tibia_nodes] @ rel[:3, :3].T + rel[:3, 3], atol=1e-9)
+    np.testing.assert_allclose(posed.x[m.femur_nodes], m.X[m.femur_nodes], atol=1e-12)
+    n_skin = m.skin_faces.max() + 1
+    X, x = m.X[:n_skin], posed.x[:n_skin]
+    y0, w = tissue.anatomy.joint_y, tissue.anatomy.width
+    top, bottom = X[:, 1] > y0 + 1.5 * w, X[:, 1] < y0 - 1.5 * w
+    # (nothing holds the thigh's skin but the tissue around the femur: measured, 4-5 mm of shear at 45 deg)
+    assert np.linalg.norm(x[top] - X[top], axis=1).max() < 0.1 * w
+    moved = X[bottom] @ rel[:3, :3].T + rel[:3, 3]
+    assert np.median(np.linalg.norm(x[bottom] - moved, axis=1)) < 0.1 * w
+    # and not a rigid two-part blend: the knee band's skin is somewhere between the two bones' motions
+    band = np.abs(X[:, 1] - y0) < 0.2 * w
+    to_f = np.linalg.norm(x[band] - X[band], axis=1)
+    to_t = np.linalg.norm(x[band] - (X[band] @ rel[:3, :3].T + rel[:3, 3]), axis=1)
+    assert np.median(np.minimum(to_f, to_t)) > 1.0
+    assert posed.skin(tissue).is_watertight
+
+
+def test_smooth_surface_field_rms_and_smoothness():
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(4000, 3))
+    v = 60.0 * u / np.linalg.norm(u, axis=1, keepdims=True)  # a sphere, normals radial
+    n = v / 60.0
+    assert np.array_equal(smooth_surface_field(v, n, 0.0, 20.0, rng), v)
+    moved = smooth_surface_field(v, n, 2.0, 20.0, np.random.default_rng(1))
+    d = np.einsum("ij,ij->i", moved - v, n)
+    assert np.sqrt(np.mean(d ** 2)) == pytest.approx(2.0, rel=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(moved - v - d[:, None] * n, axis=1), 0.0, atol=1e-9)  # normal only
+    # smooth: vertices 5 mm apart differ by far less than two independent draws would (2 sqrt(2) = 2.8 mm RMS)
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(v).query_pairs(5.0, output_type="ndarray")
+    assert np.sqrt(np.mean((d[pairs[:, 0]] - d[pairs[:, 1]]) ** 2)) < 0.5
+
+
+@pytest.fixture(scope="module")
+def small_case_set(tmp_path_factory):
+    from knee.app.experiments.case_set import build_case_set
+
+    out = tmp_path_factory.mktemp("cases") / "set"
+    return build_case_set(out, seed=4, data=None, mechanism_flexions=(40.0,), mismatches=(0.0, 1.0))
+
+
+def test_case_set_truth_and_rough_pose(small_case_set):
+    from knee.app.experiments.case_set import DEVIATION_DEG, ROUGH_DEG, read_case_set
+
+    index = read_case_set(small_case_set)
+    cases = index["case"]
+    assert len(cases) == 1 + 3 and len({c["id"] for c in cases}) == len(cases)  # 0 mm paper; 1 mm three cameras
+    for c in cases:
+        Tf, Tt = np.array(c["T_camera_femur_ct"]), np.array(c["T_camera_tibia_ct"])
+        init = np.loadtxt(small_case_set / c["initial_pose"]).reshape(4, 4)
+        angle = Rotation.from_matrix(init[:3, :3] @ Tf[:3, :3].T).magnitude()
+        assert math.radians(ROUGH_DEG[0]) - 1e-9 <= angle <= math.radians(ROUGH_DEG[1]) + 1e-9
+        # the truth's tibia relative to its femur: the case's joint coordinates' flexion, within the deviation
+        rel = Rotation.from_matrix(Tf[:3, :3].T @ Tt[:3, :3]).magnitude()
+        assert rel > 0.0
+        assert abs(c["flexion_deg"] - 40.0) <= DEVIATION_DEG[1] + 1e-6
+        depth = np.load(small_case_set / c["depth"])
+        assert depth.dtype == np.float32 and (depth > 0).mean() > 0.05
+
+
+def test_case_set_runs_and_measures_against_its_truth(small_case_set):
+    from knee.app.experiments.case_set import run_case_set
+
+    rows = run_case_set(small_case_set, ["kinematics"], select=lambda c: c["camera"] == "paper" and c["mismatch_mm"] == 0)
+    assert len(rows) == 1 and not rows[0].failed, rows[0].failed
+    r = rows[0]
+    # the mechanism alone finds the flexion and lands within a few mm: a frame or sign error in the truth's
+    # or the estimate's chain (CT, femur frame, camera) would put it tens of mm off
+    assert abs(r.flexion_estimated_deg - r.flexion_true_deg) < 5.0
+    assert r.footprints_mm < 12.0 and r.registration_inliers > 0.4
+
+
+def test_case_set_index_errors(tmp_path):
+    from knee.app.experiments.case_set import read_case_set
+    from knee.foundations.errors import KneeInputError
+
+    (tmp_path / "case-set.toml").write_text('format = "other"\n')
+    with pytest.raises(KneeInputError, match="not a case set"):
+        read_case_set(tmp_path)
+    (tmp_path / "case-set.toml").write_text('format = "knee-case-set"\n[[anatomy]]\nname = "a"\n[[case]]\nid = "c"\n'
+                                            'anatomy = "a"\n')
+    with pytest.raises(KneeInputError, match="case c: missing depth"):
+        read_case_set(tmp_path)

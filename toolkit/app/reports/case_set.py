@@ -1,0 +1,133 @@
+"""The case set's report (``knee compare CASE_SET``): every run listed, the medians per method and case
+family, the issue's targets checked, and a figure per method x family."""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections import defaultdict
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only, no display
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+#: The paper's own figures (seed 000): mean footprint and epiphysis errors, femur / tibia (mm).
+PAPER_FOOTPRINTS_MM = (3.81, 3.89)
+PAPER_EPIPHYSIS_MM = (4.88, 5.12)
+NAMES = {"paper": "(i) paper", "init": "(ii) init", "links": "(iii) links", "kinematics": "(iv) kinematics"}
+
+
+def _median(v) -> float:
+    v = [x for x in v if x == x]
+    return statistics.median(v) if v else float("nan")
+
+
+def groups(rows):
+    """{(anatomy, family, mismatch_mm): [rows]} in a stable order."""
+    out = defaultdict(list)
+    for r in rows:
+        out[(r.anatomy, r.family, r.mismatch_mm)].append(r)
+    return dict(sorted(out.items()))
+
+
+def targets(rows) -> list[str]:
+    """The issue's targets for (iii), each a line with met / NOT met and the figure measured."""
+    ok = [r for r in rows if r.method == "links" and not r.failed]
+    lines = []
+    for lo, hi, target in ((0.0, 1.0, 2.0), (2.0, 2.0, 3.0)):
+        sel = [r.footprints_mm for r in ok if lo <= r.mismatch_mm <= hi]
+        if sel:
+            m = _median(sel)
+            what = "0 and 1 mm" if hi == 1.0 else "2 mm"
+            lines.append(f"(iii) median footprint error at {what} skin mismatch: {m:.2f} mm over {len(sel)} cases "
+                         f"(target <= {target:g} mm): {'met' if m <= target else 'NOT met'}")
+    kin = {r.case: r for r in rows if r.method == "kinematics" and not r.failed}
+    pairs = [(r, kin[r.case]) for r in ok if r.case in kin]
+    if pairs:
+        share = sum(a.footprints_mm < b.footprints_mm for a, b in pairs) / len(pairs)
+        lines.append(f"(iii) lower than (iv) in {100 * share:.0f} % of {len(pairs)} cases (target >= 80 %): "
+                     f"{'met' if share >= 0.8 else 'NOT met'}")
+    if ok:
+        m = _median(r.footprints_mm for r in ok)
+        paper = sum(PAPER_FOOTPRINTS_MM) / 2
+        lines.append(f"(iii) median footprint error over all cases {m:.2f} mm against the paper's reported "
+                     f"{paper:.2f} mm: {'lower' if m < paper else 'NOT lower'}")
+        fl = [abs(r.flexion_estimated_deg - r.flexion_true_deg) for r in ok]
+        lines.append(f"(iii) flexion error median {_median(fl):.2f} deg, {sum(f <= 2.0 for f in fl)} of {len(fl)} "
+                     f"cases within 2 deg")
+        w = _median(r.wall_seconds for r in ok)
+        lines.append(f"(iii) median time {w:.1f} s per case including the registration (target <= 5 s): "
+                     f"{'met' if w <= 5 else 'NOT met'}")
+    failed = [r for r in rows if r.failed]
+    if failed:
+        lines.append(f"{len(failed)} runs failed (listed in the table)")
+    return lines
+
+
+def markdown(rows, methods, title: str) -> str:
+    """The medians per family and method, then every run."""
+    out = [f"# {title}", "", "Medians per case family (mm, deg; footprints = mean of femur and tibia ACL/PCL "
+           "footprint errors). The paper reports footprints "
+           f"{PAPER_FOOTPRINTS_MM[0]} / {PAPER_FOOTPRINTS_MM[1]} mm and epiphyses {PAPER_EPIPHYSIS_MM[0]} / "
+           f"{PAPER_EPIPHYSIS_MM[1]} mm (femur / tibia) on its own cases.", "",
+           "| anatomy | family | skin mismatch | method | cases | failed | footprints | femur fp | tibia fp | "
+           "epiphysis | flexion error | time (s) |", "|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for (anat, fam, mm), rs in groups(rows).items():
+        for m in methods:
+            sel = [r for r in rs if r.method == m]
+            ok = [r for r in sel if not r.failed]
+            if not sel:
+                continue
+            out.append(f"| {anat} | {fam} | {mm:g} mm | {NAMES.get(m, m)} | {len(ok)} | {len(sel) - len(ok)} | "
+                       f"{_median(r.footprints_mm for r in ok):.2f} | {_median(r.femur_footprints_mm for r in ok):.2f} | "
+                       f"{_median(r.tibia_footprints_mm for r in ok):.2f} | {_median(r.epiphysis_mm for r in ok):.2f} | "
+                       f"{_median(abs(r.flexion_estimated_deg - r.flexion_true_deg) for r in ok):.2f} | "
+                       f"{_median(r.wall_seconds for r in ok):.1f} |")
+    out += ["", "## Targets", ""] + [f"- {line}" for line in targets(rows)]
+    out += ["", "## Every run", "", "| case | method | true flexion | estimate | femur fp | tibia fp | femur epi | "
+            "tibia epi | time (s) | notes |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+    for r in rows:
+        if r.failed:
+            out.append(f"| {r.case} | {NAMES.get(r.method, r.method)} | {r.flexion_true_deg:.1f} | failed: {r.failed} "
+                       f"| | | | | | |")
+            continue
+        out.append(f"| {r.case} | {NAMES.get(r.method, r.method)} | {r.flexion_true_deg:.1f} | "
+                   f"{r.flexion_estimated_deg:.1f} | {r.femur_footprints_mm:.2f} | {r.tibia_footprints_mm:.2f} | "
+                   f"{r.femur_epiphysis_mm:.2f} | {r.tibia_epiphysis_mm:.2f} | {r.wall_seconds:.1f} | "
+                   f"{r.notes[:160].replace('|', '/')} |")
+    return "\n".join(out) + "\n"
+
+
+def plot(rows, methods, path, title: str = "") -> None:
+    """Footprint error per case, one panel per anatomy x family, methods side by side, grouped by skin
+    mismatch; the paper's reported figure as a line."""
+    panels = sorted({(r.anatomy, r.family) for r in rows})
+    n = max(1, len(panels))
+    fig, axes = plt.subplots(1, n, figsize=(4.6 * n, 4.2), squeeze=False, sharey=True)
+    colours = {"paper": "tab:gray", "init": "tab:orange", "links": "tab:blue", "kinematics": "tab:green"}
+    for ax, (anat, fam) in zip(axes[0], panels):
+        mms = sorted({r.mismatch_mm for r in rows if (r.anatomy, r.family) == (anat, fam)})
+        for k, m in enumerate(methods):
+            for i, mm in enumerate(mms):
+                v = [r.footprints_mm for r in rows if (r.anatomy, r.family, r.mismatch_mm, r.method) == (anat, fam, mm, m)
+                     and not r.failed]
+                x = i + (k - (len(methods) - 1) / 2) * 0.18
+                ax.scatter(np.full(len(v), x), v, s=14, color=colours.get(m), alpha=0.8,
+                           label=NAMES.get(m, m) if i == 0 else None)
+                if v:
+                    ax.plot([x - 0.07, x + 0.07], [np.median(v)] * 2, color=colours.get(m), lw=2)
+        ax.axhline(sum(PAPER_FOOTPRINTS_MM) / 2, color="k", ls=":", lw=1, label="paper's reported")
+        ax.set_xticks(range(len(mms)), [f"{mm:g} mm" for mm in mms])
+        ax.set_xlabel("skin mismatch (RMS)")
+        ax.set_title(f"{anat}\n{fam}", fontsize=9)
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("footprint error (mm)")
+    axes[0][0].legend(fontsize=7)
+    top = max([r.footprints_mm for r in rows if not r.failed and math.isfinite(r.footprints_mm)] or [10.0])
+    axes[0][0].set_ylim(0, min(top * 1.05, 40.0))
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
