@@ -29,7 +29,7 @@ from knee.fitting.landmarks import femur_landmarks, patella_landmarks, tibia_lan
 from knee.fitting.regions import articular_regions
 from knee.foundations.errors import KneeInputError
 from knee.foundations.imaging import read_body_transforms, write_markups, write_surface
-from knee.foundations.surfaces import closed_surface
+from knee.foundations.surfaces import SurfaceQuery, clip_to_slab, closed_surface
 
 #: The Visible Human files, relative to the data folder.
 VISIBLE_HUMAN = ("visible-human-male/VH_M_Knee_R.glb", "visible-human-male/VH_M_Skin.glb")
@@ -237,8 +237,6 @@ def visible_human_subject(data_folder, out_dir, band_widths: float = 3.0) -> Pat
     ``ct/``: femur, tibia, patella and the skin (the whole body's skin clipped to ``band_widths`` femur
     widths either side of the joint line and closed: the leg around the knee) in the scan's frame, mm; the
     landmarks found on the bones (the hip centre and the malleoli where the bones reach them)."""
-    from knee.foundations.surfaces import SurfaceQuery, clip_to_slab
-
     out = Path(out_dir)
     if out.exists() and any(out.iterdir()):
         raise KneeInputError(f"{out} exists and is not empty; not overwritten")

@@ -458,11 +458,13 @@ def surface_phase(model: AssociationModel, surf: SurfaceForces, max_steps: int, 
 
 
 def prior_method(method: str, model: AssociationModel, prior: Mechanism, points, max_steps: int = 80,
-                 **paper_options) -> Reconstruction:
+                 femur_from: str = "thigh", **paper_options) -> Reconstruction:
     """Methods (ii) ``"init"``, (iii) ``"links"`` and (iv) ``"kinematics"`` (and (i) ``"paper"``, for
     one entry point to all four) on a point cloud (P, 3), mm, world frame, with ``prior`` the (fitted)
     mechanism of the subject the model was built from. See the module docstring for the methods and
-    their fallbacks; ``paper_options`` go to :func:`paper_method`."""
+    their fallbacks; ``paper_options`` go to :func:`paper_method`. ``femur_from``: "thigh" (the paper's
+    way: the registration refined on the thigh alone, which the model holds) or "knee" (the flexion
+    estimate's registration of the whole posed skin kept)."""
     if method not in METHODS:
         raise KneeInputError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     if method == "paper":
@@ -487,9 +489,17 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     # the cloud in the model frame: the registration of the prior-posed skin, refined on the thigh alone
     # (the thigh is held in the model, so the femur is placed by the thigh as in the paper's method)
     # (30 ICP iterations: the estimate's registration is already close; 60 gave the same transforms)
-    pts_model, fitness, T_reg = register_to_model(model, transform_points(invert_poses(est.T_world_model), pts),
-                                                  iterations=30)
-    T_world = est.T_world_model @ invert_poses(T_reg)
+    if femur_from == "thigh":
+        pts_model, fitness, T_reg = register_to_model(model, transform_points(invert_poses(est.T_world_model), pts),
+                                                      iterations=30)
+        T_world = est.T_world_model @ invert_poses(T_reg)
+    elif femur_from == "knee":
+        # the femur where the whole posed skin put it: the knee's own shape (patella, condyles, tuberosity)
+        # fixes it along the thigh's axis, which the thigh's near-cylinder cannot
+        T_world = est.T_world_model
+        pts_model, fitness = transform_points(invert_poses(T_world), pts), est.inliers
+    else:
+        raise KneeInputError(f"femur_from must be 'thigh' or 'knee', got {femur_from!r}")
     # the tibia off the prior's path as far as the shank's points show (its axial rotation stays the prior's)
     corr = correct_tibia(est.skin, pts_model, est.flexion)
     if not corr.applied:
@@ -542,7 +552,7 @@ MIN_REGISTERED = 0.3
 
 
 def reconstruct_in_camera(model: AssociationModel, prior: Mechanism, points_cam, T_init=None, method: str = "links",
-                          max_steps: int = 80):
+                          max_steps: int = 80, **options):
     """A method on points (P, 3) in a camera's frame where the knee's pose is known only roughly:
     ``T_init`` (4, 4), camera to model (femur) frame, within about 30 deg and 50 mm, or None (a global
     registration). The cloud is placed on the prior's skin (:func:`knee.models.prior.register_roughly`),
@@ -554,4 +564,4 @@ def reconstruct_in_camera(model: AssociationModel, prior: Mechanism, points_cam,
         raise KneeInputError(f"the points do not show this knee: after registration only {100 * rough.inliers:.0f} % "
                              f"of them lie within 5 mm of its skin (RMS {rough.rms:.1f} mm)")
     pts = transform_points(rough.T_model_world, points_cam)
-    return prior_method(method, model, prior, pts, max_steps=max_steps), rough
+    return prior_method(method, model, prior, pts, max_steps=max_steps, **options), rough

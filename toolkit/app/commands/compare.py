@@ -11,6 +11,7 @@ from knee.app.console import ProgressBar, flexion_list, out_dir, say
 from knee.app.experiments.case_set import is_case_set, read_case_set, run_case_set
 from knee.app.experiments.cases import compare_cases, prior_floor, truth_phantom
 from knee.app.experiments.subject_cases import compare_subject
+from knee.app.reports import case_set as report
 from knee.app.reports.compare import (
     CompareRecorder,
     floor_markdown,
@@ -151,8 +152,6 @@ def run_subject(args) -> int:
 def run_cases(args) -> int:
     """``knee compare CASE_SET``: every method on every case of a case set (``scripts/build_case_set.py``;
     :mod:`knee.app.experiments.case_set`), with the table, the targets and the figure."""
-    from knee.app.reports import case_set as report
-
     for flag in ("prior", "truth_motion", "truth"):
         if getattr(args, flag):
             raise KneeInputError(f"--{flag.replace('_', '-')} does not go with a case set (its truth and priors are in it)")

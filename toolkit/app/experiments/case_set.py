@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import tempfile
 import time
 import tomllib
 from dataclasses import dataclass
@@ -44,8 +45,10 @@ from scipy.spatial.transform import Rotation
 from knee.app.experiments.cases import CompareRow
 from knee.fitting.optimize import perturb_endpoints
 from knee.fitting.pipeline import anatomical_frames
+from knee.fitting.reference_data import lenhart_subject, visible_human_subject
 from knee.fitting.subject import load_subject
 from knee.fitting.subject_anatomy import subject_anatomy
+from knee.fitting.synthetic import make_subject
 from knee.foundations.conventions import invert_poses, joint_to_pose, pose_to_joint, transform_points
 from knee.foundations.errors import KneeError, KneeInputError
 from knee.foundations.files import read_text
@@ -101,10 +104,6 @@ def template_prior(anatomy, template_name: str = "volunteer"):
 def measured_motion(data_folder, flexions_deg) -> np.ndarray:
     """lenhart2015's measured TF joint coordinates (n, 6; rad, mm) at ``flexions_deg``, from its trial's
     half that covers more flexion (linear interpolation)."""
-    import tempfile
-
-    from knee.fitting.reference_data import lenhart_subject
-
     with tempfile.TemporaryDirectory() as tmp:
         measured = load_subject(lenhart_subject(data_folder, Path(tmp) / "lenhart2015")).motion.tf
     k = int(np.argmax(measured[:, 0]))
@@ -167,9 +166,6 @@ def _assembling_prior(params, seed: int):
 
 def _anatomies(out: Path, data, seed: int, names) -> list[tuple[Anatomy, Mechanism, object]]:
     """(entry, truth mechanism, prior params) of each anatomy, their subject folders and priors written."""
-    from knee.fitting.reference_data import visible_human_subject
-    from knee.fitting.synthetic import make_subject
-
     res = []
     for name in names:
         if name == "phantom":
@@ -315,7 +311,7 @@ class CaseRow(CompareRow):
     registration_inliers: float = float("nan")
 
 
-def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T_ct_model) -> CaseRow:
+def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T_ct_model, **options) -> CaseRow:
     """One method on one case: the depth image and the rough pose in, the bones in the camera's frame out,
     measured at the target points (ACL/PCL footprints from the prior's attachments, the epiphyses)."""
     depth = np.load(folder / case["depth"])
@@ -325,7 +321,7 @@ def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T
     init = np.loadtxt(folder / case["initial_pose"]).reshape(4, 4)
     model = build_knee_model(anatomy, prior=prior)
     t0 = time.perf_counter()
-    recon, rough = reconstruct_in_camera(model, prior, pts, invert_poses(init @ T_ct_model), method)
+    recon, rough = reconstruct_in_camera(model, prior, pts, invert_poses(init @ T_ct_model), method, **options)
     wall = time.perf_counter() - t0
     T_cam_world = invert_poses(rough.T_model_world)
     fa = np.vstack([prior.params.link(n).femur for n in ("acl", "pcl")])
@@ -347,9 +343,9 @@ def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T
 
 
 def run_case_set(folder, methods, progress: Callable[[int, int, str], None] | None = None,
-                 select: Callable[[dict], bool] | None = None) -> list[CaseRow]:
-    """Every method on every case of a case set (``select``: a filter on the cases); a run that fails is a
-    row with its reason."""
+                 select: Callable[[dict], bool] | None = None, **options) -> list[CaseRow]:
+    """Every method on every case of a case set (``select``: a filter on the cases; ``options`` go to
+    :func:`knee.models.fem.methods.prior_method`); a run that fails is a row with its reason."""
     folder = Path(folder)
     index = read_case_set(folder)
     cases = [c for c in index["case"] if select is None or select(c)]
@@ -367,7 +363,7 @@ def run_case_set(folder, methods, progress: Callable[[int, int, str], None] | No
             if progress:
                 progress(i * len(methods) + j, total, f"{m} on {c['id']}")
             try:
-                rows.append(run_case(folder, c, m, anatomy, prior, T_ct_model))
+                rows.append(run_case(folder, c, m, anatomy, prior, T_ct_model, **options))
             except KneeError as e:
                 rows.append(CaseRow(m, c["camera"], float(c["flexion_deg"]), failed=str(e), case=c["id"],
                                     anatomy=c["anatomy"], family=c["family"], mismatch_mm=float(c["mismatch_mm"])))
