@@ -28,26 +28,6 @@ from pathlib import Path
 import numpy as np
 
 
-def template_prior(anatomy, template_name: str = "volunteer"):
-    """The bundled set scaled to the anatomy's femoral width (endpoints and lengths), TF only."""
-    from knee.models.fem.scene import phantom_anatomy
-    from knee.models.mechanism import Mechanism
-    from knee.models.mechanism.params import LINK_FEMUR, LINK_LENGTH, LINK_TIBIA, N_LINKS, link_entries, load_model
-
-    p = load_model(template_name)
-    ref, _ = phantom_anatomy(Mechanism(p))
-    s = anatomy.width / ref.width
-    v = p.to_vector().copy()
-    for i in range(N_LINKS):
-        for part in (LINK_FEMUR, LINK_TIBIA, LINK_LENGTH):
-            v[link_entries(i, part)] *= s
-    q = p.with_vector(v)
-    init = dataclasses.replace(p.initial, unknowns=p.initial.unknowns * np.r_[1.0, 1.0, s, s, s])
-    return dataclasses.replace(q, pf=None, initial=init, name=f"{template_name}-scaled-{s:.3f}",
-                               links=tuple(dataclasses.replace(lk, femur_radius=None if lk.femur_radius is None
-                                                               else lk.femur_radius * s) for lk in q.links)), s
-
-
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
@@ -57,6 +37,7 @@ def main():
                     help="the truth's motion: the template mechanism's (30/60/90 deg), or the lenhart2015 knee's "
                          "measured dynamic-MRI motion transferred as joint coordinates (20/30/45 deg)")
     args = ap.parse_args()
+    from knee.app.experiments.case_set import template_prior
     from knee.app.experiments.subject_cases import compare_subject
     from knee.fitting.optimize import perturb_endpoints
     from knee.fitting.reference_data import visible_human_knee
