@@ -188,3 +188,43 @@ def test_case_set_index_errors(tmp_path):
                                             'anatomy = "a"\n')
     with pytest.raises(KneeInputError, match="case c: missing depth"):
         read_case_set(tmp_path)
+
+
+def _error_lines(capsys):
+    err = capsys.readouterr().err
+    return [ln for ln in err.splitlines() if ln.startswith("knee: error:")], err
+
+
+def test_compare_on_a_case_set_bad_input_one_line_nothing_written(small_case_set, tmp_path, capsys):
+    from knee.app.cli import main
+
+    out = tmp_path / "out"
+    assert main(["compare", str(small_case_set), "--only", "no-such-case", "--out", str(out), "--quiet"]) == 2
+    lines, err = _error_lines(capsys)
+    assert len(lines) == 1 and "selects none" in lines[0] and "Traceback" not in err
+    assert not out.exists()
+    assert main(["compare", str(small_case_set), "--prior", "x.toml", "--out", str(out)]) == 2
+    lines, _ = _error_lines(capsys)
+    assert len(lines) == 1 and "--prior does not go with a case set" in lines[0]
+    assert main(["compare", "volunteer", "--only", "x", "--out", str(out)]) == 2
+    lines, _ = _error_lines(capsys)
+    assert len(lines) == 1 and "--only goes with a case set" in lines[0]
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "case-set.toml").write_text('format = "knee-case-set"\n[[anatomy]]\nname = "a"\n')
+    assert main(["compare", str(bad), "--out", str(out)]) == 2
+    lines, _ = _error_lines(capsys)
+    assert len(lines) == 1 and "no cases" in lines[0]
+    assert not out.exists()
+
+
+def test_compare_on_a_case_set_writes_its_report(small_case_set, tmp_path, capsys):
+    from knee.app.cli import main
+
+    out = tmp_path / "out"
+    assert main(["compare", str(small_case_set), "--methods", "kinematics", "--only", "0mm-paper", "--out", str(out),
+                 "--quiet"]) == 0
+    md = (out / "compare.md").read_text()
+    assert "## Targets" in md and "(iv) kinematics" in md and (out / "compare.png").stat().st_size > 0
+    rows = (out / "compare.csv").read_text().splitlines()
+    assert len(rows) == 2 and "mismatch_mm" in rows[0]

@@ -30,7 +30,7 @@ def _spaced_subsample(points, spacing, seed=0):
     return points[taken]
 
 
-def _quality(p):
+def tet_quality(p):
     """Radius-ratio-like quality in (0, 1]: 6 sqrt(2) V / l_rms^3 (1 for a regular tetrahedron)."""
     e = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0], p[:, 2] - p[:, 1],
                   p[:, 3] - p[:, 1], p[:, 3] - p[:, 2]], axis=1)
@@ -60,7 +60,7 @@ def tetrahedralize(mesh, edge: float = 20.0, min_quality: float = 0.05, seed: in
     pts = np.vstack([surf, lattice])
     tets = Delaunay(pts).simplices
     cent = pts[tets].mean(axis=1)
-    keep = q.inside(cent) & (_quality(pts[tets]) > min_quality)
+    keep = q.inside(cent) & (tet_quality(pts[tets]) > min_quality)
     tets = tets[keep]
     used, inv = np.unique(tets, return_inverse=True)
     X, tets = pts[used], inv.reshape(tets.shape)

@@ -37,6 +37,7 @@ from scipy.spatial.transform import Rotation
 from knee.foundations.conventions import transform_points
 from knee.foundations.errors import KneeError, KneeInputError
 from knee.foundations.surfaces import SurfaceQuery
+from knee.models.fem.bones import tet_quality
 from knee.models.fem.factor import SparseFactor
 
 #: Node spacing of the tissue mesh, in femur widths.
@@ -45,10 +46,19 @@ EDGE_WIDTHS = 0.1
 INCREMENT_DEG = 20.0
 
 
-def _deformation(x: np.ndarray, tets: np.ndarray, Dm_inv: np.ndarray) -> np.ndarray:
+def _edges(x: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(E, 3, 3): each tetrahedron's edges from its node 0, as columns."""
     p = x[tets]
-    Ds = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]], axis=2)  # (E, 3, 3) columns
-    return Ds @ Dm_inv
+    return np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]], axis=2)
+
+
+def _volumes6(x: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(E,): six times each tetrahedron's signed volume."""
+    return np.linalg.det(_edges(x, tets))
+
+
+def _deformation(x: np.ndarray, tets: np.ndarray, Dm_inv: np.ndarray) -> np.ndarray:
+    return _edges(x, tets) @ Dm_inv
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -122,8 +132,7 @@ def _passive_weights(X, tets, h, n_skin):
     """Skin vertices that no tetrahedron of some volume holds (a node the Delaunay left out, or one of
     two decimated vertices a fraction of a millimetre apart): each follows the displacements of its four
     nearest held nodes, inverse-distance weighted. Returns (passive (k,), neighbours (k, 4), weights (k, 4))."""
-    p = X[tets]
-    vol = np.abs(np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0])) / 6.0
+    vol = np.abs(_volumes6(X, tets)) / 6.0
     held = np.bincount(tets.ravel(), weights=np.repeat(vol, 4), minlength=len(X)) > 0.01 * h ** 3
     passive = np.nonzero(~held[:n_skin])[0]
     active = np.nonzero(held)[0]
@@ -170,12 +179,9 @@ def tissue_mesh(anatomy, edge: float | None = None, seed: int = 0) -> TissueMesh
     k = kind[tets]
     tets = tets[~(np.all(k == 1, axis=1) | np.all(k == 2, axis=1) | ((k == 1).any(axis=1) & (k == 2).any(axis=1)))]
     # orientation and slivers
-    p = X[tets]
-    vol6 = np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0])
-    tets[vol6 < 0] = tets[vol6 < 0][:, [0, 2, 1, 3]]
-    e = np.linalg.norm(p[:, [1, 2, 3, 2, 3, 3]] - p[:, [0, 0, 0, 1, 1, 2]], axis=2)
-    quality = 6.0 * np.sqrt(2.0) * np.abs(vol6) / 6.0 / np.sqrt((e ** 2).mean(axis=1)) ** 3
-    tets = tets[quality > 0.02]
+    flip = _volumes6(X, tets) < 0
+    tets[flip] = tets[flip][:, [0, 2, 1, 3]]
+    tets = tets[tet_quality(X[tets]) > 0.02]
     return TissueMesh(X, tets, np.arange(ns, ns + nf), np.arange(ns + nf, ns + nf + nt), np.asarray(skin.faces), h)
 
 
@@ -194,8 +200,7 @@ class TetTissue:
         self.mesh = m
         self.mu = E / (2.0 * (1.0 + nu))
         self.lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
-        p = m.X[m.tets]
-        Dm = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]], axis=2)
+        Dm = _edges(m.X, m.tets)
         self.Dm_inv = np.linalg.inv(Dm)
         self.vol = np.abs(np.linalg.det(Dm)) / 6.0
         # dF/dx: F's column j takes node (k + 1) with weight Dm^-1[k, j], node 0 with minus their sum
@@ -227,10 +232,6 @@ class TetTissue:
         df = cKDTree(m.X[m.femur_nodes]).query(m.X)[0]
         dt = cKDTree(m.X[m.tibia_nodes]).query(m.X)[0]
         self._w = (df / np.maximum(df + dt, 1e-9))[:, None]  # the tibia's share
-
-    @property
-    def skin_vertices_rest(self) -> np.ndarray:
-        return self.mesh.X[: self.mesh.skin_faces.max() + 1]
 
     def energy(self, x: np.ndarray, hessian: bool = False):
         """Total energy (N mm), its gradient (N, 3) and, with ``hessian``, the free nodes' stiffness (the
@@ -279,9 +280,7 @@ class TetTissue:
             prev = M
         passive, nb, w = self._passive
         x[passive] = m.X[passive] + np.einsum("pk,pkj->pj", w, x[nb] - m.X[nb])
-        p = x[m.tets]
-        J = np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0])
-        return PosedTissue(x, int((J <= 0).sum()), iterations, residual, n)
+        return PosedTissue(x, int((_volumes6(x, m.tets) <= 0).sum()), iterations, residual, n)
 
     def _newton(self, x, tolerance, max_iterations):
         """Newton's method on the free nodes with a backtracking line search on the energy; converged when

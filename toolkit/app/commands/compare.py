@@ -49,6 +49,8 @@ def camera_list(text: str) -> list[str]:
 def run(args) -> int:
     if Path(args.model).is_dir() and is_case_set(args.model):
         return run_cases(args)
+    if args.only:
+        raise KneeInputError("--only goes with a case set (a folder with case-set.toml)")
     if Path(args.model).is_dir():
         return run_subject(args)
     for flag in ("prior", "truth_motion"):

@@ -40,20 +40,19 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from knee.app.experiments.cases import CompareRow
+from knee.app.experiments.cases import CompareRow, reconstruction_row
+from knee.app.experiments.subject_cases import camera_target_errors, random_pose
 from knee.fitting.optimize import perturb_endpoints
 from knee.fitting.pipeline import anatomical_frames
 from knee.fitting.reference_data import lenhart_subject, visible_human_subject
 from knee.fitting.subject import load_subject
 from knee.fitting.subject_anatomy import subject_anatomy
 from knee.fitting.synthetic import make_subject
-from knee.foundations.conventions import invert_poses, joint_to_pose, pose_to_joint, transform_points
+from knee.foundations.conventions import invert_poses, joint_to_pose, pose_to_joint
 from knee.foundations.errors import KneeError, KneeInputError
 from knee.foundations.files import read_text
 from knee.foundations.pointclouds import backproject
-from knee.models.evaluation import target_errors, target_points
 from knee.models.fem.depth import DepthNoise, default_camera, render_depth
 from knee.models.fem.methods import reconstruct_in_camera
 from knee.models.fem.scene import build_knee_model, phantom_anatomy
@@ -121,17 +120,6 @@ def transferred(q, start, scan_tf) -> np.ndarray:
     q = np.array(q, float)
     q[:, 3:] = np.asarray(scan_tf)[3:] + (q[:, 3:] - np.asarray(start)[3:])
     return q
-
-
-def _random_pose(rng, deg_range, mm_range, centre) -> np.ndarray:
-    """A rotation of a random magnitude in ``deg_range`` about a random axis through ``centre``, then a
-    translation of a random length in ``mm_range`` in a random direction (4, 4)."""
-    axis, d = rng.normal(size=3), rng.normal(size=3)
-    R = Rotation.from_rotvec(math.radians(rng.uniform(*deg_range)) * axis / np.linalg.norm(axis)).as_matrix()
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = centre - R @ centre + rng.uniform(*mm_range) * d / np.linalg.norm(d)
-    return T
 
 
 @dataclass
@@ -217,7 +205,7 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
                 T = joint_to_pose(truth.motion_at(np.radians(mechanism_flexions))[0])
                 T_scan = joint_to_pose(truth.motion_at(np.array([scan[0]]))[0][0])
                 for fl, Tm in zip(mechanism_flexions, T):
-                    dev = _random_pose(rng, DEVIATION_DEG, DEVIATION_MM, np.zeros(3))
+                    dev = random_pose(rng, DEVIATION_DEG, DEVIATION_MM, np.zeros(3))
                     poses.append((family, fl, Tm @ invert_poses(T_scan) @ anatomy.tibia_pose @ dev))
             elif family == "measured":
                 q, start = measured_motion(data, measured_flexions)
@@ -244,7 +232,7 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
                     folder.mkdir(parents=True)
                     np.save(folder / "depth.npy", depth.astype(np.float32))
                     T_cam_model = cam.T_cam_world  # the camera was placed in the femur (model) frame
-                    rough = T_cam_model @ _random_pose(rng, ROUGH_DEG, ROUGH_MM, centre)
+                    rough = T_cam_model @ random_pose(rng, ROUGH_DEG, ROUGH_MM, centre)
                     np.savetxt(folder / "initial_pose.txt", rough @ invert_poses(Tf), fmt="%.9g")
                     rel = T_tibia @ invert_poses(anatomy.tibia_pose)
                     cases.append({
@@ -323,23 +311,12 @@ def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T
     t0 = time.perf_counter()
     recon, rough = reconstruct_in_camera(model, prior, pts, invert_poses(init @ T_ct_model), method, **options)
     wall = time.perf_counter() - t0
-    T_cam_world = invert_poses(rough.T_model_world)
-    fa = np.vstack([prior.params.link(n).femur for n in ("acl", "pcl")])
-    ta = transform_points(anatomy.tibia_pose, np.vstack([prior.params.link(n).tibia for n in ("acl", "pcl")]))
-    tg = target_points(anatomy.femur.vertices, anatomy.tibia.vertices, fa, ta, anatomy.joint_y, anatomy.joint_y)
-    true_f = transform_points(np.asarray(case["T_camera_femur_ct"]) @ T_ct_model, tg.femur)
-    true_t = transform_points(np.asarray(case["T_camera_tibia_ct"]) @ T_ct_model, tg.tibia)
-    est_f = transform_points(T_cam_world, recon.locate("femur", tg.femur))
-    est_t = transform_points(T_cam_world, recon.locate("tibia", tg.tibia))
-    e = target_errors(tg, est_f, est_t, true_f, true_t)
-    corr = recon.tibia_correction
-    applied = corr is not None and corr.applied
-    return CaseRow(method, case["camera"], float(case["flexion_deg"]), recon.flexion_deg, e.femur.footprints.mean,
-                   e.tibia.footprints.mean, e.femur.epiphysis.mean, e.tibia.epiphysis.mean, recon.steps, wall,
-                   recon.converged, float(np.linalg.norm(corr.rotation_deg)) if applied else float("nan"),
-                   float(np.linalg.norm(corr.translation_mm)) if applied else float("nan"), "; ".join(recon.notes),
-                   case=case["id"], anatomy=case["anatomy"], family=case["family"],
-                   mismatch_mm=float(case["mismatch_mm"]), registration_inliers=rough.inliers)
+    e = camera_target_errors(anatomy, prior, recon, invert_poses(rough.T_model_world),
+                             np.asarray(case["T_camera_femur_ct"]) @ T_ct_model,
+                             np.asarray(case["T_camera_tibia_ct"]) @ T_ct_model)
+    return reconstruction_row(method, case["camera"], float(case["flexion_deg"]), recon, e, wall, CaseRow,
+                              case=case["id"], anatomy=case["anatomy"], family=case["family"],
+                              mismatch_mm=float(case["mismatch_mm"]), registration_inliers=rough.inliers)
 
 
 def run_case_set(folder, methods, progress: Callable[[int, int, str], None] | None = None,

@@ -280,13 +280,20 @@ def _norm_or_nan(corr: TibiaCorrection | None, which: str) -> float:
     return float(np.linalg.norm(corr.rotation_deg if which == "deg" else corr.translation_mm))
 
 
+def reconstruction_row(method: str, camera_name: str, flexion_deg: float, rec: Reconstruction, e: TargetErrors,
+                       wall_seconds: float, row=CompareRow, **extra) -> CompareRow:
+    """One row of a comparison table (``row``: :class:`CompareRow` or a subclass, with its ``extra``
+    fields) from a reconstruction and its errors."""
+    return row(method, camera_name, float(flexion_deg), rec.flexion_deg, e.femur.footprints.mean,
+               e.tibia.footprints.mean, e.femur.epiphysis.mean, e.tibia.epiphysis.mean, rec.steps, wall_seconds,
+               rec.converged, _norm_or_nan(rec.tibia_correction, "deg"), _norm_or_nan(rec.tibia_correction, "mm"),
+               "; ".join(rec.notes), **extra)
+
+
 def result_row(camera_name: str, flexion_deg: float, r: MethodResult) -> CompareRow:
     """One row of the comparison table from a method's result."""
-    rec, e = r.reconstruction, r.errors
-    return CompareRow(r.method, camera_name, float(flexion_deg), rec.flexion_deg,
-                      e.femur.footprints.mean, e.tibia.footprints.mean, e.femur.epiphysis.mean, e.tibia.epiphysis.mean,
-                      rec.steps, rec.wall_seconds, rec.converged, _norm_or_nan(rec.tibia_correction, "deg"),
-                      _norm_or_nan(rec.tibia_correction, "mm"), "; ".join(rec.notes))
+    return reconstruction_row(r.method, camera_name, flexion_deg, r.reconstruction, r.errors,
+                              r.reconstruction.wall_seconds)
 
 
 #: ``progress(done, total, text)`` before each run of a comparison.

@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from knee.app.experiments.cases import CompareRow
+from knee.app.experiments.cases import CompareRow, reconstruction_row
 from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
 from knee.foundations.errors import KneeError
 from knee.foundations.pointclouds import backproject
@@ -29,10 +29,9 @@ from knee.models.evaluation import target_errors, target_points
 from knee.models.fem.anatomy import KneeAnatomy
 from knee.models.fem.depth import Camera, DepthNoise, default_camera, render_depth
 from knee.models.fem.mapping import TrilinearMapping
-from knee.models.fem.methods import METHODS, move_tibia, prior_method, quasi_static, skin_model
+from knee.models.fem.methods import METHODS, move_tibia, quasi_static, reconstruct_in_camera
 from knee.models.fem.scene import build_knee_model
 from knee.models.mechanism.solver import Mechanism
-from knee.models.prior import register_roughly
 
 #: The rough pose the methods are given: the truth turned by this much (deg) and moved by this much (mm).
 ROUGH_DEG, ROUGH_MM = 15.0, 25.0
@@ -85,44 +84,46 @@ def subject_cases(anatomy: KneeAnatomy, prior: Mechanism, motion_tf, azimuths=(3
     return out
 
 
+def random_pose(rng, deg_range, mm_range, centre) -> np.ndarray:
+    """A rotation of a random magnitude in ``deg_range`` about a random axis through ``centre``, then a
+    translation of a random length in ``mm_range`` in a random direction (4, 4)."""
+    axis, d = rng.normal(size=3), rng.normal(size=3)
+    R = Rotation.from_rotvec(math.radians(rng.uniform(*deg_range)) * axis / np.linalg.norm(axis)).as_matrix()
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = centre - R @ centre + rng.uniform(*mm_range) * d / np.linalg.norm(d)
+    return T
+
+
 def _rough_start(T_model_cam, rng) -> np.ndarray:
-    D = np.eye(4)
-    axis = rng.normal(size=3)
-    D[:3, :3] = Rotation.from_rotvec(math.radians(ROUGH_DEG) * axis / np.linalg.norm(axis)).as_matrix()
-    d = rng.normal(size=3)
-    D[:3, 3] = ROUGH_MM * d / np.linalg.norm(d)
-    return D @ T_model_cam
+    return random_pose(rng, (ROUGH_DEG, ROUGH_DEG), (ROUGH_MM, ROUGH_MM), np.zeros(3)) @ T_model_cam
 
 
-def run_subject_case(case: SubjectCase, method: str, anatomy: KneeAnatomy, prior: Mechanism, seed: int = 0):
-    """One method on one case; returns (:class:`CompareRow`, the estimated bones' poses (4, 4) in the
-    camera's frame, model coordinates at rest to camera)."""
-    model = build_knee_model(anatomy, prior=prior)
-    t0 = time.perf_counter()
-    T_model_cam = case.camera.T_world_cam  # the camera's frame to the model (femur) frame, the truth
-    rough = register_roughly(skin_model(model, prior), case.points,
-                             _rough_start(T_model_cam, np.random.default_rng(seed)))
-    pts = transform_points(rough.T_model_world, case.points)
-    recon = prior_method(method, model, prior, pts)
-    wall = time.perf_counter() - t0
-    T_cam_world = invert_poses(rough.T_model_world)
+def camera_target_errors(anatomy: KneeAnatomy, prior: Mechanism, recon, T_cam_world, T_cam_femur, T_cam_tibia):
+    """The target point errors (ACL/PCL footprints from the prior's attachments, the epiphyses) of a
+    reconstruction in a camera's frame: ``T_cam_world`` takes the reconstruction's world to the camera;
+    ``T_cam_femur``, ``T_cam_tibia`` (4, 4) take the true bones' rest model coordinates (the femur frame,
+    the tibia at its scan) to the camera."""
     fa = np.vstack([prior.params.link(n).femur for n in ("acl", "pcl")])
     ta = transform_points(anatomy.tibia_pose, np.vstack([prior.params.link(n).tibia for n in ("acl", "pcl")]))
     tg = target_points(anatomy.femur.vertices, anatomy.tibia.vertices, fa, ta, anatomy.joint_y, anatomy.joint_y)
+    return target_errors(tg, transform_points(T_cam_world, recon.locate("femur", tg.femur)),
+                         transform_points(T_cam_world, recon.locate("tibia", tg.tibia)),
+                         transform_points(T_cam_femur, tg.femur), transform_points(T_cam_tibia, tg.tibia))
+
+
+def run_subject_case(case: SubjectCase, method: str, anatomy: KneeAnatomy, prior: Mechanism, seed: int = 0):
+    """One method on one case: a :class:`CompareRow`."""
+    model = build_knee_model(anatomy, prior=prior)
+    t0 = time.perf_counter()
+    T_model_cam = case.camera.T_world_cam  # the camera's frame to the model (femur) frame, the truth
+    recon, rough = reconstruct_in_camera(model, prior, case.points,
+                                         _rough_start(T_model_cam, np.random.default_rng(seed)), method)
+    wall = time.perf_counter() - t0
     T_cam_model = invert_poses(T_model_cam)
-    true_f = transform_points(T_cam_model, tg.femur)
-    true_t = transform_points(T_cam_model @ case.T_tibia @ invert_poses(anatomy.tibia_pose), tg.tibia)
-    est_f = transform_points(T_cam_world, recon.locate("femur", tg.femur))
-    est_t = transform_points(T_cam_world, recon.locate("tibia", tg.tibia))
-    e = target_errors(tg, est_f, est_t, true_f, true_t)
-    corr = recon.tibia_correction
-    row = CompareRow(method, case.label, case.flexion_deg, recon.flexion_deg, e.femur.footprints.mean,
-                     e.tibia.footprints.mean, e.femur.epiphysis.mean, e.tibia.epiphysis.mean, recon.steps, wall,
-                     recon.converged,
-                     float(np.linalg.norm(corr.rotation_deg)) if corr is not None and corr.applied else float("nan"),
-                     float(np.linalg.norm(corr.translation_mm)) if corr is not None and corr.applied else float("nan"),
-                     "; ".join(recon.notes))
-    return row
+    e = camera_target_errors(anatomy, prior, recon, invert_poses(rough.T_model_world), T_cam_model,
+                             T_cam_model @ case.T_tibia @ invert_poses(anatomy.tibia_pose))
+    return reconstruction_row(method, case.label, case.flexion_deg, recon, e, wall)
 
 
 def compare_subject(anatomy: KneeAnatomy, prior: Mechanism, motion_tf, methods=METHODS, azimuths=(35.0,),
