@@ -177,6 +177,41 @@ def test_case_set_runs_and_measures_against_its_truth(small_case_set):
     assert r.footprints_mm < 12.0 and r.registration_inliers > 0.4
 
 
+def test_seen_shank_points_counts_in_the_true_tibia_frame():
+    from types import SimpleNamespace
+
+    from knee.app.experiments.case_set import SHANK_BELOW_WIDTHS, seen_shank_points
+
+    anatomy = SimpleNamespace(joint_y=-20.0, width=80.0)
+    cut = anatomy.joint_y - SHANK_BELOW_WIDTHS * anatomy.width  # -40 mm
+    # points 10 mm apart (one per 4 mm voxel): 30 below the cut, 20 above it, in the tibia's frame
+    local = np.zeros((50, 3))
+    local[:, 0] = 10.0 * np.arange(50)
+    local[:30, 1], local[30:, 1] = cut - 5.0, cut + 5.0
+    T = joint_to_pose(np.array([0.7, 0.2, -0.3, 15.0, -8.0, 600.0]))
+    cam = local @ T[:3, :3].T + T[:3, 3]
+    assert seen_shank_points(anatomy, cam, T) == 30
+    # the inverse pose puts the points elsewhere: the count is taken in the tibia's frame, not the camera's
+    assert seen_shank_points(anatomy, cam, np.linalg.inv(T)) != 30
+
+
+def test_flexion_target_split_by_what_the_camera_saw():
+    from knee.app.experiments.case_set import CaseRow
+    from knee.app.reports.case_set import flexion_targets
+    from knee.models.prior import MIN_SEEN_SHANK
+
+    def row(err, shank, notes=""):
+        return CaseRow("links", "paper", 40.0, flexion_estimated_deg=40.0 + err, notes=notes, shank_points_true=shank)
+
+    rows = [row(0.5, MIN_SEEN_SHANK), row(1.5, 5 * MIN_SEEN_SHANK), row(-3.0, MIN_SEEN_SHANK + 1),
+            row(6.0, 0, "the shank is hardly seen (3 depth points on it)"), row(4.0, MIN_SEEN_SHANK - 1)]
+    seen, unseen = flexion_targets(rows)
+    assert "(3 cases" in seen and "median error 1.50 deg, 2 of 3 within 2 deg" in seen and "NOT met" in seen
+    assert "(2 cases)" in unseen and "warned in 1 of 2" in unseen and "NOT met" in unseen
+    seen, unseen = flexion_targets(rows[:2] + rows[3:4])
+    assert seen.split("(target")[1].startswith(": all): met") and unseen.endswith(": met")
+
+
 def test_case_set_index_errors(tmp_path):
     from knee.app.experiments.case_set import read_case_set
     from knee.foundations.errors import KneeInputError

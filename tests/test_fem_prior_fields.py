@@ -221,3 +221,25 @@ def test_a_diverging_surface_phase_falls_back_to_the_initialisation(model, volun
     assert any("surface phase diverged" in n for n in r.notes) and not r.converged and r.steps == 9
     np.testing.assert_allclose(r.grid_x, ref.grid_x, atol=1e-2)  # the iterative solves (timing-adaptive refreshes)
     assert abs(r.flexion_deg - ref.flexion_deg) < 1e-3
+
+
+def test_papers_method_at_its_best_reading_holds_the_femur_and_keeps_the_bone_phases_flexion(volunteer):
+    """The literal reading: once the bone forces stop, the tissue's stored energy returns the knee towards its
+    scanned extension (here the cloud is the skin at extension, so the surface forces pull the same way).
+    The best reading (PAPER_AT_BEST): the femur's nodes held exactly, and the bone phase's configuration the
+    tissue's reference, so the knee stays near the flexion the bone forces reached against the same cloud."""
+    from knee.models.fem.methods import PAPER_AT_BEST, paper_method
+    from knee.models.fem.scene import bone_cell_masks
+
+    runs = {}
+    for name, opts in (("literal", {}), ("best", PAPER_AT_BEST)):
+        m = build_association_model(volunteer)
+        X = m.grid.X.copy()
+        femur = bone_cell_masks(m.grid, m.femur, m.tibia)[0]
+        r = paper_method(m, m.skin_vertices.copy(), max_steps=45, bone_stall_steps=5, **opts)
+        runs[name] = (r, float(np.abs(r.grid_x[femur] - X[femur]).max()))
+    (lit, lit_femur), (best, best_femur) = runs["literal"], runs["best"]
+    assert lit.bone_phase_flexion_deg > 20.0 and best.bone_phase_flexion_deg > 20.0  # the bone forces flex it
+    assert lit.flexion_deg < lit.bone_phase_flexion_deg - 10.0 and lit_femur > 1.0
+    assert best_femur == 0.0
+    assert abs(best.flexion_deg - best.bone_phase_flexion_deg) < 5.0

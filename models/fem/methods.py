@@ -233,20 +233,42 @@ def register_to_model(model: AssociationModel, points, iterations: int = 60) -> 
     return pts @ T_reg[:3, :3].T + T_reg[:3, 3], fitness, T_reg
 
 
+#: The paper's method (i) at its best reading on the honest benchmark's cases (``knee compare CASE_SET``):
+#: of the settings the paper leaves open, the femur held with the thigh and the configuration the bone
+#: forces reach made the tissue's reference. Chosen on four cases (phantom and Visible Human, 20-90 deg,
+#: 1 mm skin mismatch, the paper's camera), median footprint error: literal 9.2 mm (the knee returns towards
+#: extension once the bone forces stop), femur held 9.4, held and rebased 8.7, surface springs of 10 N/mm
+#: instead of 2 about the same where they converge at up to four times the steps (one of four diverged),
+#: rebased without holding the femur 35-45 mm (the femur's swing inside the tissue is kept), and with the
+#: bone forces kept on in the surface phase as well 60-78 mm (they keep flexing the knee).
+PAPER_AT_BEST = {"hold_femur": True, "rebase_after_bones": True}
+
 #: ``on_step(k, phase, model, surface_forces, bone_forces)``, called after every step of the paper's method.
 StepCallback = Callable[[int, str, AssociationModel, SurfaceForces, BoneForces], None]
 
 
 def paper_method(model: AssociationModel, points, bone_force_scale: float = 1.0, surface_k: float = 2.0,
                  max_steps: int = 400, bone_stall_deg: float = 0.5, bone_stall_steps: int = 10,
+                 keep_bone_forces: bool = False, rebase_after_bones: bool = False, hold_femur: bool = False,
                  on_step: StepCallback | None = None) -> Reconstruction:
     """Seed 000's method on a point cloud (P, 3), mm, world frame (see the module docstring).
+
+    Settings the paper leaves open (defaults: the literal reading): ``surface_k`` (N/mm) the surface
+    springs' stiffness; ``keep_bone_forces`` keeps the bone forces acting in the surface phase (the paper
+    only says when they start acting); ``rebase_after_bones`` makes the configuration the bone forces
+    reached the tissue's stress-free reference when the surface phase starts, with the velocities zeroed
+    (without it the tissue's stored energy returns the knee towards its scanned extension once the bone
+    forces stop; with it the skin forces only have to correct the flexion the bone forces found).
 
     ``on_step(k, phase, model, surface_forces, bone_forces)`` is called after every step (e.g. to record
     it or show progress; the surface forces act in the "surface" phase only)."""
     t_start = time.perf_counter()
     pts, fitness, T_reg = register_to_model(model, points)
     s = model.solver
+    if hold_femur:
+        s.fixed = s.fixed | bone_cell_masks(model.grid, model.femur, model.tibia)[0]
+        s.set_prescribed(None)  # the free set is computed from the fixed nodes
+        s.invalidate()
     held = bool(s.fixed.any())
     bone = BoneForces(model.femur, model.tibia, scale=bone_force_scale, use_femur=not held)
     surf = SurfaceForces(model.grid, model.skin_vertices, pts, k=surface_k)
@@ -270,10 +292,13 @@ def paper_method(model: AssociationModel, points, bone_force_scale: float = 1.0,
                     bone_end = "angle" if between < 100.0 else ("stalled" if stalled else "cap")
                     bone_flex = flex
                     phase = "surface"
+                    if rebase_after_bones:
+                        s.v[:] = 0.0
+                        make_reference(model)
                     s.fields.append(surf)
                     s.invalidate()  # the surface springs enter the preconditioner
             else:
-                info = s.step()
+                info = s.step(bone.forces) if keep_bone_forces else s.step()
                 inverted = check_state(model, k, extent)
                 flex, between = knee_angles(model)
             skin_now = smap.apply(s.x)
@@ -365,11 +390,19 @@ def move_tibia(model: AssociationModel, poses, settle: int = 1, rebase: bool = T
         s.set_prescribed(None)
         s.invalidate()
         return steps
+    make_reference(model)
+    return steps
+
+
+def make_reference(model: AssociationModel) -> None:
+    """Make the grid's current configuration the model's stress-free reference."""
+    s = model.solver
     # the configuration becomes the stress-free reference: the model has no muscles to hold the flexion,
     # so without this the tissue's bending energy would return the knee to extension; elements inverted by
     # the motion (crushed tissue behind the knee) are dropped, and the bone contact takes its activation
     # distances from this configuration
     x = s.x
+    X = model.grid.X
     kept = model.soft.el.rebase(x)
     kept += model.femur.el.rebase(model.femur.bone_positions(x))
     kept += model.tibia.el.rebase(model.tibia.bone_positions(x))
@@ -386,7 +419,6 @@ def move_tibia(model: AssociationModel, poses, settle: int = 1, rebase: bool = T
     model.isolated_at_init = int((~alive).sum())
     s.set_prescribed(None)  # after the new fixed nodes: the free set is computed from them
     s.invalidate()
-    return steps
 
 
 def link_springs(model: AssociationModel, prior: Mechanism, k: float = 1000.0, T_tibia: np.ndarray | None = None):

@@ -172,7 +172,8 @@ def run_cases(args) -> int:
     rows = run_case_set(args.model, methods, None if args.quiet else (lambda i, k, t: bar(i / k, t)), select)
     title = f"Case set {Path(args.model).name} (seed {index.get('seed')})"
     with staged_folder(out) as tmp:
-        write_csv(rows, tmp / "compare.csv", extra=("case", "anatomy", "family", "mismatch_mm", "registration_inliers"))
+        write_csv(rows, tmp / "compare.csv", extra=("case", "anatomy", "family", "mismatch_mm", "registration_inliers",
+                                                            "shank_points_true"))
         (tmp / "compare.md").write_text(report.markdown(rows, methods, title), encoding="utf-8")
         report.plot(rows, methods, tmp / "compare.png", title)
     for line in report.targets(rows):

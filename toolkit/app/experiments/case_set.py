@@ -49,12 +49,12 @@ from knee.fitting.reference_data import lenhart_subject, visible_human_subject
 from knee.fitting.subject import load_subject
 from knee.fitting.subject_anatomy import subject_anatomy
 from knee.fitting.synthetic import make_subject
-from knee.foundations.conventions import invert_poses, joint_to_pose, pose_to_joint
+from knee.foundations.conventions import invert_poses, joint_to_pose, pose_to_joint, transform_points
 from knee.foundations.errors import KneeError, KneeInputError
 from knee.foundations.files import read_text
-from knee.foundations.pointclouds import backproject
+from knee.foundations.pointclouds import backproject, voxel_downsample
 from knee.models.fem.depth import DepthNoise, default_camera, render_depth
-from knee.models.fem.methods import reconstruct_in_camera
+from knee.models.fem.methods import PAPER_AT_BEST, reconstruct_in_camera
 from knee.models.fem.scene import build_knee_model, phantom_anatomy
 from knee.models.fem.tissue import TetTissue, smooth_surface_field
 from knee.models.mechanism import Mechanism
@@ -67,6 +67,7 @@ from knee.models.mechanism.params import (
     load_model,
     toml_string,
 )
+from knee.models.prior import VOXEL_MM
 
 FORMAT = "knee-case-set"
 #: Camera placements: azimuth toward lateral, elevation toward proximal (deg), distance (mm); "paper" is
@@ -297,26 +298,46 @@ class CaseRow(CompareRow):
     family: str = ""
     mismatch_mm: float = float("nan")
     registration_inliers: float = float("nan")
+    shank_points_true: int = -1
+
+
+#: The shank, for counting what the camera sees of it: the skin more than this many femur widths below the
+#: joint line, in the true tibia's frame (below the prior's blended knee band, a quarter width).
+SHANK_BELOW_WIDTHS = 0.25
+
+
+def seen_shank_points(anatomy, points_cam, T_cam_tibia) -> int:
+    """How many depth points (camera frame, after the flexion estimate's voxel thinning) lie on the true
+    shank: more than :data:`SHANK_BELOW_WIDTHS` femur widths below the joint line in the true tibia's frame
+    (``T_cam_tibia`` takes the tibia's rest model coordinates to the camera). The truth's side of the
+    flexion target: the camera sees the shank when this reaches :data:`knee.models.prior.MIN_SEEN_SHANK`."""
+    local = transform_points(invert_poses(T_cam_tibia), voxel_downsample(points_cam, VOXEL_MM))
+    return int(np.count_nonzero(local[:, 1] < anatomy.joint_y - SHANK_BELOW_WIDTHS * anatomy.width))
 
 
 def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T_ct_model, **options) -> CaseRow:
     """One method on one case: the depth image and the rough pose in, the bones in the camera's frame out,
-    measured at the target points (ACL/PCL footprints from the prior's attachments, the epiphyses)."""
+    measured at the target points (ACL/PCL footprints from the prior's attachments, the epiphyses). The
+    paper's method runs at its best reading (:data:`knee.models.fem.methods.PAPER_AT_BEST`, which
+    ``options`` may override)."""
     depth = np.load(folder / case["depth"])
     fx, fy, cx, cy = case["intrinsics"]
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     pts = backproject(depth.astype(float), K)
     init = np.loadtxt(folder / case["initial_pose"]).reshape(4, 4)
     model = build_knee_model(anatomy, prior=prior)
+    if method == "paper":  # the paper's method at its best reading (the README lists the choices)
+        options = {**PAPER_AT_BEST, **options}
     t0 = time.perf_counter()
     recon, rough = reconstruct_in_camera(model, prior, pts, invert_poses(init @ T_ct_model), method, **options)
     wall = time.perf_counter() - t0
+    T_cam_tibia = np.asarray(case["T_camera_tibia_ct"]) @ T_ct_model
     e = camera_target_errors(anatomy, prior, recon, invert_poses(rough.T_model_world),
-                             np.asarray(case["T_camera_femur_ct"]) @ T_ct_model,
-                             np.asarray(case["T_camera_tibia_ct"]) @ T_ct_model)
+                             np.asarray(case["T_camera_femur_ct"]) @ T_ct_model, T_cam_tibia)
     return reconstruction_row(method, case["camera"], float(case["flexion_deg"]), recon, e, wall, CaseRow,
                               case=case["id"], anatomy=case["anatomy"], family=case["family"],
-                              mismatch_mm=float(case["mismatch_mm"]), registration_inliers=rough.inliers)
+                              mismatch_mm=float(case["mismatch_mm"]), registration_inliers=rough.inliers,
+                              shank_points_true=seen_shank_points(anatomy, pts, T_cam_tibia))
 
 
 def run_case_set(folder, methods, progress: Callable[[int, int, str], None] | None = None,

@@ -13,6 +13,8 @@ matplotlib.use("Agg")  # files only, no display
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from knee.models.prior import MIN_SEEN_SHANK  # noqa: E402
+
 #: The paper's own figures (seed 000): mean footprint and epiphysis errors, femur / tibia (mm).
 PAPER_FOOTPRINTS_MM = (3.81, 3.89)
 PAPER_EPIPHYSIS_MM = (4.88, 5.12)
@@ -54,15 +56,44 @@ def targets(rows) -> list[str]:
         paper = sum(PAPER_FOOTPRINTS_MM) / 2
         lines.append(f"(iii) median footprint error over all cases {m:.2f} mm against the paper's reported "
                      f"{paper:.2f} mm: {'lower' if m < paper else 'NOT lower'}")
-        fl = [abs(r.flexion_estimated_deg - r.flexion_true_deg) for r in ok]
-        lines.append(f"(iii) flexion error median {_median(fl):.2f} deg, {sum(f <= 2.0 for f in fl)} of {len(fl)} "
-                     f"cases within 2 deg")
+        lines += flexion_targets(ok)
         w = _median(r.wall_seconds for r in ok)
         lines.append(f"(iii) median time {w:.1f} s per case including the registration (target <= 5 s): "
                      f"{'met' if w <= 5 else 'NOT met'}")
     failed = [r for r in rows if r.failed]
     if failed:
         lines.append(f"{len(failed)} runs failed (listed in the table)")
+    return lines
+
+
+#: What a run's notes say when the view cannot show the flexion (the flexion estimate's warnings, its fallback).
+UNSEEN_WARNINGS = ("shank is hardly seen", "too little of the shank", "hardly changes with flexion")
+
+
+def warned_unseen(row) -> bool:
+    """Whether a run warned that the camera shows too little of the shank to see the flexion."""
+    return any(w in row.notes for w in UNSEEN_WARNINGS)
+
+
+def flexion_targets(rows) -> list[str]:
+    """The flexion target, split by what the camera truly saw of the shank (``shank_points_true``, from the
+    truth's tibia): within 2 deg where it sees the shank (at least :data:`MIN_SEEN_SHANK` depth points on
+    it); a warning where it does not."""
+    err = {id(r): abs(r.flexion_estimated_deg - r.flexion_true_deg) for r in rows}
+    seen = [r for r in rows if r.shank_points_true >= MIN_SEEN_SHANK]
+    unseen = [r for r in rows if 0 <= r.shank_points_true < MIN_SEEN_SHANK]
+    lines = []
+    if seen:
+        within = sum(err[id(r)] <= 2.0 for r in seen)
+        lines.append(f"(iii) flexion where the camera sees the shank ({len(seen)} cases, >= {MIN_SEEN_SHANK} depth points "
+                     f"on it): median error {_median(err[id(r)] for r in seen):.2f} deg, {within} of {len(seen)} "
+                     f"within 2 deg (target: all): {'met' if within == len(seen) else 'NOT met'}; "
+                     f"{sum(warned_unseen(r) for r in seen)} of them warned")
+    if unseen:
+        warned = sum(warned_unseen(r) for r in unseen)
+        lines.append(f"(iii) flexion where the camera hardly sees the shank ({len(unseen)} cases): median error "
+                     f"{_median(err[id(r)] for r in unseen):.2f} deg; warned in {warned} of {len(unseen)} "
+                     f"(target: all): {'met' if warned == len(unseen) else 'NOT met'}")
     return lines
 
 
