@@ -258,7 +258,10 @@ def paper_method(model: AssociationModel, points, bone_force_scale: float = 1.0,
     only says when they start acting); ``rebase_after_bones`` makes the configuration the bone forces
     reached the tissue's stress-free reference when the surface phase starts, with the velocities zeroed
     (without it the tissue's stored energy returns the knee towards its scanned extension once the bone
-    forces stop; with it the skin forces only have to correct the flexion the bone forces found).
+    forces stop; with it the skin forces only have to correct the flexion the bone forces found);
+    ``hold_femur`` holds the femur's grid cells with the thigh (the paper holds the thigh only; with the
+    thigh alone the bone forces swing the femur inside the tissue). :data:`PAPER_AT_BEST` is the benchmark's
+    choice.
 
     ``on_step(k, phase, model, surface_forces, bone_forces)`` is called after every step (e.g. to record
     it or show progress; the surface forces act in the "surface" phase only)."""
