@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from knee.app.experiments.cases import phantom_targets
-from knee.foundations.conventions import joint_to_pose
+from knee.foundations.conventions import joint_to_pose, transform_points
 from knee.foundations.errors import KneeInputError
 from knee.foundations.pointclouds import backproject, voxel_downsample
 from knee.models.evaluation import pose_errors
@@ -236,3 +236,32 @@ def _case(volunteer, deg, azimuth):
     from knee.app.experiments.cases import case_points
 
     return case_points(volunteer, deg, default_camera(azimuth_deg=azimuth), DepthNoise(), 3)
+
+
+def test_rough_registration_keeps_the_better_of_its_reach_schedules(volunteer, scene):
+    """From a guess 25 deg and 40 mm off, the rough registration keeps the best match over its reach
+    schedules, in whichever order they come: a schedule that cannot move the cloud (a 1 mm reach: no
+    pairs) beside the default wide one gives the wide one's answer, which lands near the truth (the
+    scene's world is the model frame); the default tries more than one schedule."""
+    from scipy.spatial.transform import Rotation
+
+    from knee.models.prior import ROUGH_REACHES_MM, register_roughly
+
+    ph, _, pts = scene
+    sk = SkinModel(volunteer, ph)
+    guess = np.eye(4)
+    guess[:3, :3] = Rotation.from_rotvec(math.radians(25.0) * np.array([0.6, 0.0, 0.8])).as_matrix()
+    guess[:3, 3] = [24.0, -32.0, 0.0]
+    assert len(ROUGH_REACHES_MM) >= 2
+    wide, stuck = ROUGH_REACHES_MM[0], (1.0,)
+    alone = register_roughly(sk, pts, guess, reaches_mm=(wide,))
+    idle = register_roughly(sk, pts, guess, reaches_mm=(stuck,))
+    assert idle.inliers < alone.inliers - 0.2
+    for order in ((stuck, wide), (wide, stuck)):
+        r = register_roughly(sk, pts, guess, reaches_mm=order)
+        assert r.inliers == pytest.approx(alone.inliers) and r.rms == pytest.approx(alone.rms)
+        np.testing.assert_allclose(r.T_model_world, alone.T_model_world, atol=1e-6)
+    T = alone.T_model_world
+    rot = math.degrees(math.acos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+    shift = float(np.linalg.norm(transform_points(T, pts) - pts, axis=1).mean())
+    assert rot < 10.0 and shift < 15.0, (rot, shift)
