@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from knee.app.experiments.cases import phantom_targets
-from knee.foundations.conventions import joint_to_pose, transform_points
+from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
 from knee.foundations.errors import KneeInputError
 from knee.foundations.pointclouds import backproject, voxel_downsample
 from knee.models.evaluation import pose_errors
@@ -178,6 +178,27 @@ def test_the_tibia_correction_recovers_what_the_shank_shows(volunteer):
     stiff = correct_tibia(SkinModel(volunteer, ph), pts, alpha, sigma_mm=0.01, sigma_deg=0.001)
     assert np.linalg.norm(stiff.translation_mm) < 0.1 * np.linalg.norm(c.translation_mm)
     assert np.linalg.norm(stiff.rotation_deg) < 0.1 * np.linalg.norm(c.rotation_deg)
+
+
+def test_the_tibia_correction_draws_in_a_shank_beyond_its_narrow_band(volunteer):
+    """The front half of a shank swung 17 deg off the mechanism's path (as a camera in front sees it):
+    from the narrow band alone too few points lie near the prior's shank to correct it, and the prior's
+    pose is kept; starting from the wide band the correction finds the swing."""
+    from knee.models.prior import MIN_CORRECTION_POINTS, correct_tibia, small_pose
+
+    ph = build_phantom(volunteer.params)
+    sk = SkinModel(volunteer, ph)
+    alpha = math.radians(60.0)
+    xi = np.array([0.3, 0.0, 0.0, 0.0, 0.0, 0.0])
+    pts = _shank_points(volunteer, ph, alpha, small_pose(xi))
+    T_true = sk.at(alpha).parts[1][1] @ small_pose(xi)
+    pts = pts[transform_points(invert_poses(T_true), pts)[:, 0] > 0.0]  # the anterior half
+    narrow = correct_tibia(sk, pts, alpha, sigma_mm=100.0, sigma_deg=90.0, wide_band_mm=None)
+    assert not narrow.applied and narrow.points < MIN_CORRECTION_POINTS
+    c = correct_tibia(sk, pts, alpha, sigma_mm=100.0, sigma_deg=90.0)
+    assert c.applied
+    np.testing.assert_allclose(c.rotation_deg, np.degrees(xi[:3]), atol=0.2)
+    np.testing.assert_allclose(c.translation_mm, xi[3:], atol=0.2)
 
 
 def test_no_tibia_correction_without_shank_points(volunteer):
