@@ -494,8 +494,8 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
     used when within ``band_mm`` of the shank's skin and at least 2 mm closer to it than to the thigh, the
     knee or the patella; in the first ``wide_iterations`` within ``wide_band_mm`` (:data:`WIDE_BAND_MM`;
     None: the narrow band throughout), so that a shank further off the prior's path than the narrow band
-    is drawn in before the band narrows. With fewer than :data:`MIN_CORRECTION_POINTS` such points the prior's pose is
-    kept (stated in ``note``)."""
+    is drawn in before the band narrows. With fewer than :data:`MIN_CORRECTION_POINTS` such points the
+    prior's pose is kept (stated in ``note``)."""
     posed = skin.at(alpha)
     T_prior = posed.parts[SHANK][1]
     shank = posed.parts[SHANK][0]
