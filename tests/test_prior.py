@@ -184,14 +184,14 @@ def test_the_tibia_correction_draws_in_a_shank_beyond_its_narrow_band(volunteer)
     """The front half of a shank swung 17 deg off the mechanism's path (as a camera in front sees it):
     from the narrow band alone too few points lie near the prior's shank to correct it, and the prior's
     pose is kept; starting from the wide band the correction finds the swing."""
-    from knee.models.prior import MIN_CORRECTION_POINTS, correct_tibia, small_pose
+    from knee.models.prior import MIN_CORRECTION_POINTS, SHANK, correct_tibia, small_pose
 
     ph = build_phantom(volunteer.params)
     sk = SkinModel(volunteer, ph)
     alpha = math.radians(60.0)
     xi = np.array([0.3, 0.0, 0.0, 0.0, 0.0, 0.0])
     pts = _shank_points(volunteer, ph, alpha, small_pose(xi))
-    T_true = sk.at(alpha).parts[1][1] @ small_pose(xi)
+    T_true = sk.at(alpha).parts[SHANK][1] @ small_pose(xi)
     pts = pts[transform_points(invert_poses(T_true), pts)[:, 0] > 0.0]  # the anterior half
     narrow = correct_tibia(sk, pts, alpha, sigma_mm=100.0, sigma_deg=90.0, wide_band_mm=None)
     assert not narrow.applied and narrow.points < MIN_CORRECTION_POINTS
