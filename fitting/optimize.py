@@ -57,36 +57,89 @@ class Motion:
         return self.tf[:, 0]
 
 
-def average_cycle_halves(motion: Motion, step_deg: float = 1.0) -> Motion:
-    """A flexion-extension cycle's two halves averaged (seed 002 fitted the mean of the two): the frames
-    up to the largest flexion and those after it, each interpolated over flexion on the angles both
-    cover (every ``step_deg``), then averaged component by component. Refused when one half covers less
-    than 5 deg or the halves do not overlap."""
+def cycle_phases(flexion, turn_deg: float = 3.0) -> list:
+    """The trial's phases: (first row, last row, +1 flexing or -1 extending), split where the flexion turns
+    back by more than ``turn_deg`` from its running extreme (smaller reversals are noise and stay in the
+    phase; so does a first move smaller than ``turn_deg`` against the trial's first direction).
+    Consecutive phases share their turning row. A trial that never moves by ``turn_deg`` is one phase of
+    direction 0."""
+    a = np.degrees(np.asarray(flexion, float))
+    phases, start, ext, sign = [], 0, 0, 0
+    lo_i = hi_i = 0
+    for k in range(1, len(a)):  # a scan over the trial's frames, once, before the fit
+        if sign == 0:
+            lo_i = k if a[k] < a[lo_i] else lo_i
+            hi_i = k if a[k] > a[hi_i] else hi_i
+            if a[hi_i] - a[lo_i] > turn_deg:
+                # the first move larger than turn_deg sets the direction; a turn before it splits there
+                sign = 1 if hi_i > lo_i else -1
+                turn = lo_i if sign > 0 else hi_i
+                start = 0
+                if abs(a[turn] - a[0]) > turn_deg:
+                    phases.append((0, turn, -sign))
+                    start = turn
+                ext = hi_i if sign > 0 else lo_i
+            continue
+        if sign * (a[k] - a[ext]) >= 0:
+            ext = k
+        elif sign * (a[ext] - a[k]) > turn_deg:
+            phases.append((start, ext, sign))
+            start, sign, ext = ext, -sign, k
+    phases.append((start, len(a) - 1, sign))
+    return phases
+
+
+def average_cycle_halves(motion: Motion, step_deg: float = 1.0, turn_deg: float = 3.0) -> Motion:
+    """A trial's flexing and extending phases averaged (seed 002 fitted, and measured its errors against,
+    the mean of a cycle's flexion and extension): the trial split into phases where the flexion turns
+    back (:func:`cycle_phases`); each phase interpolated over flexion (every ``step_deg``); the phases of
+    one direction averaged where they overlap and joined across gaps between them; then the two
+    directions averaged component by component over the flexion both cover. A trial may start anywhere
+    and turn several times (flex, extend past its start, flex again). Refused when one direction is
+    missing or the two overlap by less than 5 deg."""
     a = motion.flexion
-    k = int(np.argmax(a))
-    halves = [np.arange(0, k + 1), np.arange(k, len(a))]
-    spans = [(a[h].min(), a[h].max()) for h in halves]
-    lo, hi = max(s[0] for s in spans), min(s[1] for s in spans)
-    if min(s[1] - s[0] for s in spans) < math.radians(5.0) or hi - lo < math.radians(5.0):
+    phases = [p for p in cycle_phases(a, turn_deg) if p[2] != 0]
+    spans = {d: [(a[s:e + 1].min(), a[s:e + 1].max()) for s, e, sd in phases if sd == d] for d in (1, -1)}
+    if not spans[1] or not spans[-1]:
+        raise KneeInputError("averaging the cycle's halves needs a flexion half and an extension half (the trial "
+                             f"never turns back by more than {turn_deg:g} deg)")
+    lo = max(min(s[0] for s in spans[d]) for d in (1, -1))
+    hi = min(max(s[1] for s in spans[d]) for d in (1, -1))
+    if hi - lo < math.radians(5.0) or any(max(s[1] - s[0] for s in spans[d]) < math.radians(5.0) for d in (1, -1)):
         raise KneeInputError("averaging the cycle's halves needs a flexion half and an extension half that each "
-                             f"cover 5 deg or more and overlap by 5 deg (flexion peaks at row {k + 1} of {len(a)})")
+                             f"cover 5 deg or more and overlap by 5 deg (the halves cover {_spans_text(spans)})")
     grid = np.arange(lo, hi + 1e-12, math.radians(step_deg))
+
+    def direction_mean(q, d):
+        """(grid, c) the phases of direction d interpolated on the grid, averaged where they overlap,
+        linearly joined across the gaps between them."""
+        acc, cnt = np.zeros((grid.size, q.shape[1])), np.zeros(grid.size)
+        for s, e, sd in phases:
+            if sd != d:
+                continue
+            order = np.argsort(a[s:e + 1], kind="stable")
+            x, y = a[s:e + 1][order], q[s:e + 1][order]
+            inside = (grid >= x[0]) & (grid <= x[-1])
+            acc[inside] += np.stack([np.interp(grid[inside], x, y[:, j]) for j in range(q.shape[1])], axis=1)
+            cnt[inside] += 1
+        have = cnt > 0
+        out = acc[have] / cnt[have, None]
+        return np.stack([np.interp(grid, grid[have], out[:, j]) for j in range(q.shape[1])], axis=1)
 
     def mean(q):
         if q is None:
             return None
-        out = np.empty((grid.size, q.shape[1]))
-        for j in range(q.shape[1]):
-            vals = []
-            for h in halves:
-                order = np.argsort(a[h])
-                vals.append(np.interp(grid, a[h][order], q[h][order, j]))
-            out[:, j] = 0.5 * (vals[0] + vals[1])
-        return out
+        return 0.5 * (direction_mean(q, 1) + direction_mean(q, -1))
 
     tf = mean(motion.tf)
     tf[:, 0] = grid
     return Motion(tf, mean(motion.pf))
+
+
+def _spans_text(spans) -> str:
+    return "; ".join(("flexion " if d > 0 else "extension ")
+                     + ", ".join(f"{math.degrees(s0):.1f}-{math.degrees(s1):.1f}" for s0, s1 in spans[d])
+                     + " deg" for d in (1, -1))
 
 
 def noise_weights(sd=None) -> np.ndarray:

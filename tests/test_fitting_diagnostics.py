@@ -147,6 +147,64 @@ def test_the_cycle_halves_are_averaged_on_the_flexion_both_cover():
         average_cycle_halves(up)  # no extension half
 
 
+def test_a_trial_that_starts_mid_range_and_turns_twice_is_averaged_over_its_whole_range():
+    """A trial like a dynamic-MRI one: it starts at 30 deg, flexes to 60, extends to 5 (past its start) and
+    flexes again to 35, with a hysteresis offset of opposite sign in the flexing and extending phases and
+    a 1.4 deg reversal of the flexion inside a phase. The phases are found at the true turning rows, the
+    small reversal does not split a phase, and the mean cancels the offsets over 5-60 deg: every flexing
+    frame is used, not only those of the first phase (which alone covers only 30-60 deg)."""
+    from knee.fitting.optimize import Motion, average_cycle_halves, cycle_phases
+
+    p = load_model("volunteer")
+    legs = [np.linspace(30, 60, 16), np.linspace(60, 5, 28)[1:], np.linspace(5, 35, 16)[1:]]
+    angles = np.concatenate(legs)
+    angles[30] += 3.5  # the flexion turns back inside the extending phase, by less than turn_deg (3 deg)
+    assert 1.0 < angles[30] - angles[29] < 3.0
+    m, _ = synthetic_motion(p, angles, noise=False)
+    turns = [0, 15, 15 + 27, len(angles) - 1]
+    assert [(s, e) for s, e, _ in cycle_phases(m.flexion)] == list(zip(turns[:-1], turns[1:]))
+    assert [d for *_, d in cycle_phases(m.flexion)] == [1, -1, 1]
+    sign = np.ones(len(angles))
+    sign[turns[1] + 1:turns[2]] = -1.0  # the extending phase's frames (the turning rows stay flexing)
+    tf, pf = m.tf.copy(), m.pf.copy()
+    tf[:, 1] -= math.radians(1.0) * sign
+    pf[:, 0] += math.radians(2.0) * sign
+    mean = average_cycle_halves(Motion(tf, pf))
+    assert math.degrees(mean.flexion[0]) == pytest.approx(5.0) and math.degrees(mean.flexion[-1]) > 59.0
+    truth, _ = synthetic_motion(p, np.degrees(mean.flexion), noise=False)
+    # the turning rows carry the flexing phases' offset into the extending phase's interpolation, and the
+    # reversal's rows are interpolated from both sides: away from them the offsets cancel
+    deg = np.degrees(mean.flexion)
+    clean = (deg > 7.5) & (deg < 57.5) & (np.abs(deg - angles[30]) > 3.0)
+    np.testing.assert_allclose(mean.tf[clean, 1], truth.tf[clean, 1], atol=3e-4)
+    np.testing.assert_allclose(mean.pf[clean, 0], truth.pf[clean, 0], atol=3e-4)
+    # without the last phase the flexing frames cover only 30-60 deg, and so does the mean
+    first_two = average_cycle_halves(Motion(tf[:turns[2] + 1], pf[:turns[2] + 1]))
+    assert math.degrees(first_two.flexion[0]) == pytest.approx(30.0)
+
+
+def test_a_fit_to_the_phases_mean_reports_its_errors_against_every_frame_too(tmp_path):
+    """The synthetic knee's motion as a cycle (flex to 90, extend to 0) with +-1.5 deg of adduction
+    hysteresis: fitted to the phases' mean, the model is near the truth there; against every frame as
+    measured the hysteresis adds about its 1.5 deg, which no 1-DoF model can follow."""
+    from knee.fitting.pipeline import fit_subject
+    from knee.fitting.synthetic import make_subject
+    from knee.foundations.imaging import write_motion_csv
+
+    d = make_subject(tmp_path / "s", seed=0, frames=20)
+    truth = load_model(d / "truth.toml")
+    up, down = np.linspace(0, 90, 16), np.linspace(90, 0, 16)[1:]
+    m, _ = synthetic_motion(truth, np.concatenate([up, down]), noise=False)
+    tf = m.tf.copy()
+    tf[:16, 1] -= math.radians(1.5)
+    tf[16:, 1] += math.radians(1.5)
+    write_motion_csv(d / "motion.csv", tf, m.pf)
+    o = fit_subject(d, effort="quick", average_halves=True)
+    assert o.fitted_errors.tf.mae[1] < 0.5
+    assert 1.2 < o.as_measured_errors.tf.mae[1] < 2.0
+    assert len(o.as_measured_errors.model_tf) == 31 and len(o.motion.tf) == 91  # the mean on a 1 deg grid
+
+
 def test_trials_fitted_together_and_a_held_out_trial_checked(tmp_path):
     """A second trial of the synthetic knee (other noise) fitted together doubles the frames; a third, held
     out, is reported with errors of the measurement noise's size."""

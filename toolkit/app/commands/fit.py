@@ -78,6 +78,11 @@ def run(args) -> int:
     if fe.pf is not None:
         pn = ("flexion", "tilt", "rotation", "anterior", "proximal", "lateral")
         print("PF MAE  " + "  ".join(f"{n} {v:.2f}" for n, v in zip(pn, fe.pf.mae)) + "  (deg, mm)")
+    if o.as_measured_errors is not None:
+        v = o.as_measured_errors
+        print("(against the mean of the flexing and extending phases; against every frame as measured: TF MAE "
+              + "  ".join(f"{n} {x:.2f}" for n, x in zip(names, v.tf.mae[1:]))
+              + ("" if v.pf is None else "; PF flexion %.2f deg" % v.pf.mae[0]) + ")")
     for name, v in o.cross_trial:
         print(f"cross-trial {name}: TF MAE " + "  ".join(f"{n} {x:.2f}" for n, x in zip(names, v.tf.mae[1:]))
               + ("" if v.pf is None else "; PF flexion %.2f deg" % v.pf.mae[0]))
