@@ -243,3 +243,31 @@ def test_papers_method_at_its_best_reading_holds_the_femur_and_keeps_the_bone_ph
     assert lit.flexion_deg < lit.bone_phase_flexion_deg - 10.0 and lit_femur > 1.0
     assert best_femur == 0.0
     assert abs(best.flexion_deg - best.bone_phase_flexion_deg) < 5.0
+
+
+def test_the_cloud_is_placed_on_the_posed_skin_along_the_thigh_axis_too(volunteer):
+    """The one side of the FEM-posed skin at 60 deg a camera sees, moved 8 mm along the thigh's axis and
+    turned 3 deg about it: the registration onto the skin as the grid now has it (posed at 60 deg, not the
+    scanned extension) brings it back, with the transform that takes the cloud to the model."""
+    import math
+
+    import trimesh
+
+    from knee.foundations.conventions import transform_points
+    from knee.models.fem.mapping import TrilinearMapping
+    from knee.models.fem.methods import initialise_from_prior, register_to_posed_skin
+    from knee.models.prior import small_pose
+
+    model = build_association_model(volunteer)
+    initialise_from_prior(model, volunteer, math.radians(60.0))
+    v = TrilinearMapping(model.grid, model.skin_vertices).apply(model.solver.x)
+    skin = trimesh.Trimesh(v, model.skin_faces, process=False)
+    view = np.array([1.0, 0.0, 1.0]) / math.sqrt(2.0)  # a camera in front and to the side
+    pts, face = trimesh.sample.sample_surface(skin, 8000, seed=1)
+    seen = pts[skin.face_normals[face] @ view > 0.2]
+    T_off = small_pose(np.array([0.0, math.radians(3.0), 0.0, 0.0, 8.0, 0.0]))
+    moved = transform_points(T_off, seen)
+    T, fitness = register_to_posed_skin(model, moved)
+    back = transform_points(T, moved)
+    assert fitness > 0.9
+    assert np.sqrt(np.mean(np.sum((back - seen) ** 2, axis=1))) < 0.5

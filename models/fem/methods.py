@@ -19,7 +19,9 @@ sees a truth; :mod:`knee.models.evaluation` measures a reconstruction against on
   about the shank's axis left at the prior's). (iv) stops there: the bones posed by the mechanism. (ii)
   moves femur and tibia along the mechanism's path to that pose with the grid nodes of their cells
   prescribed (Dirichlet conditions, 4 increments, the correction blended in along them), makes that
-  configuration the stress-free reference, then runs the surface phase with the paper's two springs.
+  configuration the stress-free reference, places the cloud again on the skin so posed (the whole cloud,
+  so that the knee and the shank fix the femur along the thigh's axis, which the thigh's registration
+  leaves free: :func:`register_to_posed_skin`), then runs the surface phase with the paper's two springs.
   (iii) as (ii), with the mechanism's five links as stiff springs (1000 N/mm, the paper's collateral
   stiffness) between points rigidly attached to femur and tibia, their rest lengths the links' lengths at
   the corrected pose. Each link end is the minimum-norm affine combination of every bone node within
@@ -48,11 +50,13 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
+import trimesh
+from trimesh.sample import sample_surface
 
 from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
 from knee.foundations.errors import DivergenceError, KneeInputError
 from knee.foundations.geometry import rigid_register
-from knee.foundations.pointclouds import icp
+from knee.foundations.pointclouds import icp, voxel_downsample
 from knee.models.fem.elements import hex_inverted
 from knee.models.fem.fields import MappedSprings, affine_point_map
 from knee.models.fem.forces import BoneForces, SurfaceForces
@@ -60,6 +64,7 @@ from knee.models.fem.mapping import TrilinearMapping
 from knee.models.fem.scene import AssociationModel, bone_cell_masks, knee_angles
 from knee.models.mechanism.solver import Mechanism
 from knee.models.prior import (
+    VOXEL_MM,
     FlexionEstimate,
     SkinModel,
     SubjectSkinModel,
@@ -231,6 +236,32 @@ def register_to_model(model: AssociationModel, points, iterations: int = 60) -> 
         raise KneeInputError(f"the registration of the point cloud to the model failed (ICP fitness {fitness:.2f}, "
                              f"below {MIN_ICP_FITNESS})")
     return pts @ T_reg[:3, :3].T + T_reg[:3, 3], fitness, T_reg
+
+
+#: The ICP reaches (mm) of the femur's placement on the model's own posed skin (:func:`register_to_posed_skin`):
+#: a wide pass, then a narrow one.
+POSED_SKIN_REACHES_MM = (15.0, 8.0)
+
+
+def register_to_posed_skin(model: AssociationModel, points, reaches=POSED_SKIN_REACHES_MM, iterations: int = 30,
+                           n_samples: int = 8000) -> tuple[np.ndarray, float]:
+    """The rigid transform (4, 4, model frame) that brings the depth points (model frame) onto the model's
+    skin as the grid now has it, and the ICP's fitness.
+
+    After the prior's initialisation the grid holds the subject's skin posed by the FEM at the estimated
+    flexion, with the tibia corrected: closer to a flexed leg than the skin blended between the bones that
+    the flexion estimate registers, and, unlike the thigh alone (a near-cylinder), with the knee and the
+    shank to fix the femur along the thigh's axis. Point-to-plane ICP of the whole cloud (4 mm voxels) onto
+    samples of that skin, from where the thigh's registration left it."""
+    v = TrilinearMapping(model.grid, model.skin_vertices).apply(model.solver.x)
+    mesh = trimesh.Trimesh(v, model.skin_faces, process=False)
+    samples, face = sample_surface(mesh, n_samples, seed=0)
+    q = voxel_downsample(np.asarray(points, float), VOXEL_MM)
+    T, fitness = np.eye(4), 0.0
+    for reach in reaches:
+        T, fitness, _ = icp(q, samples, init=T, max_distance=reach, iterations=iterations,
+                            target_normals=mesh.face_normals[face])
+    return T, float(fitness)
 
 
 #: The paper's method (i) at its best reading on the honest benchmark's cases (``knee compare CASE_SET``):
@@ -493,13 +524,15 @@ def surface_phase(model: AssociationModel, surf: SurfaceForces, max_steps: int, 
 
 
 def prior_method(method: str, model: AssociationModel, prior: Mechanism, points, max_steps: int = 80,
-                 femur_from: str = "thigh", **paper_options) -> Reconstruction:
+                 femur_from: str = "thigh", refine_on_posed_skin: bool = True, **paper_options) -> Reconstruction:
     """Methods (ii) ``"init"``, (iii) ``"links"`` and (iv) ``"kinematics"`` (and (i) ``"paper"``, for
     one entry point to all four) on a point cloud (P, 3), mm, world frame, with ``prior`` the (fitted)
     mechanism of the subject the model was built from. See the module docstring for the methods and
     their fallbacks; ``paper_options`` go to :func:`paper_method`. ``femur_from``: "thigh" (the paper's
     way: the registration refined on the thigh alone, which the model holds) or "knee" (the flexion
-    estimate's registration of the whole posed skin kept)."""
+    estimate's registration of the whole posed skin kept). ``refine_on_posed_skin``: (ii) and (iii) place
+    the femur again, after the prior's initialisation, by the whole cloud on the skin it posed
+    (:func:`register_to_posed_skin`)."""
     if method not in METHODS:
         raise KneeInputError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     if method == "paper":
@@ -542,6 +575,16 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     s = model.solver
     with quasi_static(s):
         steps = initialise_from_prior(model, prior, est.flexion, correction_xi=corr.xi)
+        if refine_on_posed_skin:
+            # the femur placed again by the whole cloud on the skin the initialisation posed (the thigh alone
+            # leaves it free along its axis)
+            T_fix, fit_posed = register_to_posed_skin(model, pts_model)
+            if fit_posed >= MIN_ICP_FITNESS:
+                pts_model = transform_points(T_fix, pts_model)
+                T_world = T_world @ invert_poses(T_fix)
+            else:
+                notes.append(f"the cloud does not fit the posed skin (ICP fitness {fit_posed:.2f}): the femur stays "
+                             "where the thigh placed it")
         surf = SurfaceForces(model.grid, model.skin_vertices, pts_model, k=2.0)
         s.fields.append(surf)
         links = None
