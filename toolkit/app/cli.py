@@ -102,8 +102,8 @@ def build_parser() -> argparse.ArgumentParser:
     fp.add_argument("--no-recording", action="store_true", help="do not write the Rerun recording")
     fp.add_argument("--force", action="store_true", help="write into a non-empty output folder")
     fp.add_argument("--quiet", action="store_true", help="no progress bar")
-    fp.add_argument("--average-halves", action="store_true", help="fit the mean of the cycle's flexion and "
-                    "extension halves")
+    fp.add_argument("--average-halves", action="store_true", help="fit the mean of the trial's flexing and "
+                    "extending phases (split where the flexion turns back by more than 3 deg), as seed 002 did")
     fp.add_argument("--also-trial", action="append", metavar="MOTION.csv", help="another trial of the same knee, "
                     "fitted together with the folder's (repeatable)")
     fp.add_argument("--check-trial", action="append", metavar="MOTION.csv", help="a trial of the same knee not "
