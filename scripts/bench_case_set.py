@@ -1,6 +1,7 @@
-"""Method (iii) on a case set (``scripts/build_case_set.py``) with the femur placed two ways: by the
-thigh alone (the paper's way, the default) and by the whole posed skin (the knee's own shape); the
-mechanism alone (iv) beside them. Medians per anatomy, family and skin mismatch, and the share of cases
+"""Method (iii) on a case set (``scripts/build_case_set.py``) with the femur placed three ways: by the
+thigh alone (the paper's way, the default), by the whole blended skin of the flexion estimate (the knee's
+own shape), and by the thigh then the whole cloud on the skin the FEM posed (``refine_on_posed_skin``);
+the mechanism alone (iv) beside them. Medians per anatomy, family and skin mismatch, and the share of cases
 where (iii) beats (iv).
 
     .venv/bin/python scripts/bench_case_set.py CASE_SET [--only ID,...] [--csv OUT.csv]
@@ -35,6 +36,7 @@ def main() -> int:
     rows["iv"] = run_case_set(args.cases, ["kinematics"], progress, select)
     rows["iii thigh"] = run_case_set(args.cases, ["links"], progress, select, femur_from="thigh")
     rows["iii knee"] = run_case_set(args.cases, ["links"], progress, select, femur_from="knee")
+    rows["iii posed"] = run_case_set(args.cases, ["links"], progress, select, refine_on_posed_skin=True)
     keys = sorted({(r.anatomy, r.family, r.mismatch_mm) for r in rows["iv"]})
     print("| anatomy | family | mismatch | " + " | ".join(f"{k} fp (femur / tibia)" for k in rows) + " |")
     print("|---|---|---:|" + "---:|" * len(rows))
@@ -47,7 +49,7 @@ def main() -> int:
                          f"{statistics.median(r.tibia_footprints_mm for r in ok):.2f})" if ok else "-")
         print(f"| {key[0]} | {key[1]} | {key[2]:g} mm | " + " | ".join(cells) + " |")
     kin = {r.case: r.footprints_mm for r in rows["iv"] if not r.failed}
-    for k in ("iii thigh", "iii knee"):
+    for k in ("iii thigh", "iii knee", "iii posed"):
         ok = [r for r in rows[k] if not r.failed and r.case in kin]
         if ok:
             print(f"{k}: median {statistics.median(r.footprints_mm for r in ok):.2f} mm over {len(ok)} cases; lower "

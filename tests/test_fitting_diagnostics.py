@@ -181,6 +181,10 @@ def test_a_trial_that_starts_mid_range_and_turns_twice_is_averaged_over_its_whol
     # without the last phase the flexing frames cover only 30-60 deg, and so does the mean
     first_two = average_cycle_halves(Motion(tf[:turns[2] + 1], pf[:turns[2] + 1]))
     assert math.degrees(first_two.flexion[0]) == pytest.approx(30.0)
+    # a trial that turns back by 4 deg only: an extending phase under 5 deg is refused, naming what it covers
+    short, _ = synthetic_motion(p, np.concatenate([np.linspace(10, 60, 20), [58.0, 56.0]]), noise=False)
+    with pytest.raises(ValueError, match=r"cover 5 deg or more .*extension 56.0-60.0 deg"):
+        average_cycle_halves(short)
 
 
 def test_a_fit_to_the_phases_mean_reports_its_errors_against_every_frame_too(tmp_path):
