@@ -1,10 +1,11 @@
 """Method (iii) on a case set (``scripts/build_case_set.py``) with the femur placed three ways: by the
 thigh alone (the paper's way, the default), by the whole blended skin of the flexion estimate (the knee's
 own shape), and by the thigh then the whole cloud on the skin the FEM posed (``refine_on_posed_skin``);
-the mechanism alone (iv) beside them. Medians per anatomy, family and skin mismatch, and the share of cases
+the mechanism alone (iv) beside them. With ``--fem-skin``, also (iv), (iii) and (iii) on the posed skin with
+the flexion estimate's skin posed by the FEM (``flexion_skin="fem"``). Medians per anatomy, family and skin mismatch, and the share of cases
 where (iii) beats (iv).
 
-    .venv/bin/python scripts/bench_case_set.py CASE_SET [--only ID,...] [--csv OUT.csv]
+    .venv/bin/python scripts/bench_case_set.py CASE_SET [--only ID,...] [--csv OUT.csv] [--fem-skin]
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ def main() -> int:
     ap.add_argument("cases")
     ap.add_argument("--only", default="")
     ap.add_argument("--csv", default=None)
+    ap.add_argument("--fem-skin", action="store_true", help="also the rows with the flexion estimate's skin posed by "
+                    "the FEM (flexion_skin='fem')")
     args = ap.parse_args()
     from knee.app.experiments.case_set import run_case_set
 
@@ -37,6 +40,11 @@ def main() -> int:
     rows["iii thigh"] = run_case_set(args.cases, ["links"], progress, select, femur_from="thigh")
     rows["iii knee"] = run_case_set(args.cases, ["links"], progress, select, femur_from="knee")
     rows["iii posed"] = run_case_set(args.cases, ["links"], progress, select, refine_on_posed_skin=True)
+    if args.fem_skin:  # the flexion estimate's skin posed by the FEM (flexion_skin="fem")
+        rows["iv fem skin"] = run_case_set(args.cases, ["kinematics"], progress, select, flexion_skin="fem")
+        rows["iii fem skin"] = run_case_set(args.cases, ["links"], progress, select, flexion_skin="fem")
+        rows["iii fem skin posed"] = run_case_set(args.cases, ["links"], progress, select, flexion_skin="fem",
+                                                  refine_on_posed_skin=True)
     keys = sorted({(r.anatomy, r.family, r.mismatch_mm) for r in rows["iv"]})
     print("| anatomy | family | mismatch | " + " | ".join(f"{k} fp (femur / tibia)" for k in rows) + " |")
     print("|---|---|---:|" + "---:|" * len(rows))
@@ -49,7 +57,7 @@ def main() -> int:
                          f"{statistics.median(r.tibia_footprints_mm for r in ok):.2f})" if ok else "-")
         print(f"| {key[0]} | {key[1]} | {key[2]:g} mm | " + " | ".join(cells) + " |")
     kin = {r.case: r.footprints_mm for r in rows["iv"] if not r.failed}
-    for k in ("iii thigh", "iii knee", "iii posed"):
+    for k in [k for k in rows if k.startswith("iii")]:
         ok = [r for r in rows[k] if not r.failed and r.case in kin]
         if ok:
             print(f"{k}: median {statistics.median(r.footprints_mm for r in ok):.2f} mm over {len(ok)} cases; lower "
@@ -58,6 +66,9 @@ def main() -> int:
                   f"{statistics.median(r.wall_seconds for r in ok):.1f} s; failed "
                   f"{sum(r.failed != '' for r in rows[k])}")
     print(f"(iv): median {statistics.median(kin.values()):.2f} mm over {len(kin)} cases")
+    if "iv fem skin" in rows:
+        ok = [r for r in rows["iv fem skin"] if not r.failed]
+        print(f"(iv) fem skin: median {statistics.median(r.footprints_mm for r in ok):.2f} mm over {len(ok)} cases")
     if args.csv:
         with open(args.csv, "w", newline="") as fh:
             allrows = [dict(dataclasses.asdict(r), variant=k) for k, rs in rows.items() for r in rs]
