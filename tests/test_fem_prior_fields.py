@@ -271,3 +271,61 @@ def test_the_cloud_is_placed_on_the_posed_skin_along_the_thigh_axis_too(voluntee
     back = transform_points(T, moved)
     assert fitness > 0.9
     assert np.sqrt(np.mean(np.sum((back - seen) ** 2, axis=1))) < 0.5
+
+
+def _axial_case(monkeypatch, thigh_y, skin_y, thigh_rot_deg):
+    """place_along_thigh with its registrations replaced by given corrections: the thigh's full registration
+    moves the femur 12 mm along and 6 deg about the thigh's axis (and 3 mm sideways); its four
+    leave-one-group-out registrations move it ``thigh_y`` mm along and ``thigh_rot_deg`` about the axis,
+    the whole skin's four ``skin_y`` mm."""
+    from types import SimpleNamespace
+
+    import knee.models.fem.methods as M
+    from knee.models.prior import small_pose
+
+    rng = np.random.default_rng(0)
+    thigh_pts = np.column_stack([rng.uniform(-40, 40, 800), rng.uniform(60, 150, 800), rng.uniform(0, 40, 800)])
+    model = SimpleNamespace(thigh_samples=lambda: (thigh_pts, np.tile([0.0, 0.0, 1.0], (800, 1))), thigh_from=50.0,
+                            anatomy=SimpleNamespace(width=80.0))
+    est = SimpleNamespace(flexion=0.5, skin=SimpleNamespace(samples=lambda a: (thigh_pts, None, None)))
+    thigh_T = iter([small_pose(np.r_[0.0, np.radians(r), 0.0, 0.0, y, 0.0]) for y, r in zip(thigh_y, thigh_rot_deg)])
+    skin_T = iter([small_pose(np.r_[0.0, 0.0, 0.0, 0.0, y, 0.0]) for y in skin_y])
+    monkeypatch.setattr(M, "_thigh_icp", lambda *a, **k: (next(thigh_T), 1.0))
+    monkeypatch.setattr(M, "icp", lambda *a, **k: (next(skin_T), 1.0, 0.0))
+    c = thigh_pts[thigh_pts[:, 1] > 58.0][::3].mean(axis=0)
+    T_reg = M._with_axial(small_pose(np.r_[0.0, 0.0, 0.0, 3.0, 0.0, 0.0]), c, [12.0, np.radians(6.0)])
+    T, ax = M.place_along_thigh(model, est, thigh_pts, T_reg)
+    return T, ax, T_reg, c
+
+
+def _jackknife(v):
+    v = np.asarray(v, float)
+    return np.sqrt(0.75 * np.sum((v - v.mean()) ** 2))
+
+
+def test_the_thigh_places_the_femur_along_its_axis_as_far_as_its_jackknife_allows(monkeypatch):
+    """The thigh's placement along and about its axis against the whole skin's, by inverse variance of
+    their jackknife spreads (the skin's plus its own model error, POSED_SKIN_AXIAL_SD): thigh subsets that
+    agree keep the thigh's 12 mm and 6 deg; subsets that scatter tens of mm (a thigh sliding under skin
+    mismatch) hand the position to the whole skin (0). Closed forms; the other components of the thigh's
+    registration (3 mm sideways) are kept."""
+    import knee.models.fem.methods as M
+
+    sd_skin = M.POSED_SKIN_AXIAL_SD
+    # agreeing thigh subsets: sd below the floor, so the floor (0.5 mm, 0.5 deg) is the thigh's
+    T, ax, T_reg, c = _axial_case(monkeypatch, [12.1, 11.9, 12.0, 12.0], [0.3, -0.3, 0.0, 0.0], [6.0] * 4)
+    vs = _jackknife([0.3, -0.3, 0.0, 0.0]) ** 2 + sd_skin[0] ** 2
+    np.testing.assert_allclose(ax.kept[0], 12.0 * vs / (vs + 0.25), rtol=1e-6)
+    np.testing.assert_allclose(ax.kept[1], 6.0 * sd_skin[1] ** 2 / (sd_skin[1] ** 2 + 0.25), rtol=1e-6)
+    assert ax.kept[0] > 11.5
+    # scattering thigh subsets (a slide): the whole skin's placement wins
+    ys = [40.0, -10.0, 25.0, 2.0]
+    T, ax, T_reg, c = _axial_case(monkeypatch, ys, [0.3, -0.3, 0.0, 0.0], [30.0, -20.0, 5.0, 0.0])
+    vt = _jackknife(ys) ** 2
+    np.testing.assert_allclose(ax.thigh_sd[0], np.sqrt(vt), rtol=1e-6)
+    np.testing.assert_allclose(ax.kept[0], 12.0 * vs / (vs + vt), rtol=1e-6)
+    assert ax.kept[0] < 1.0 and abs(ax.kept[1]) < 0.5
+    np.testing.assert_allclose(M._axial(T, c), [ax.kept[0], np.radians(ax.kept[1])], atol=1e-9)
+    # sideways: as the thigh's registration had it
+    u = lambda T: T[:3, 3] + T[:3, :3] @ c - c
+    np.testing.assert_allclose(u(T)[[0, 2]], u(T_reg)[[0, 2]], atol=1e-9)
