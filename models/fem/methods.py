@@ -21,6 +21,9 @@ sees a truth; :mod:`knee.models.evaluation` measures a reconstruction against on
   prescribed (Dirichlet conditions, 4 increments, the correction blended in along them), makes that
   configuration the stress-free reference (with ``refine_on_posed_skin``, places the cloud again on the
   skin so posed: :func:`register_to_posed_skin`), then runs the surface phase with the paper's two springs.
+  The femur is where the thigh's registration puts it, except along and about the thigh's axis, where
+  the thigh's placement is weighed against the whole posed skin's by their jackknife spreads
+  (:func:`place_along_thigh`; a near-cylindrical thigh under skin mismatch slides tens of mm).
   (iii) as (ii), with the mechanism's five links as stiff springs (1000 N/mm, the paper's collateral
   stiffness) between points rigidly attached to femur and tibia, their rest lengths the links' lengths at
   the corrected pose. Each link end is the minimum-norm affine combination of every bone node within
