@@ -223,9 +223,7 @@ def register_to_model(model: AssociationModel, points, iterations: int = 60) -> 
         raise KneeInputError(f"the point cloud has {len(pts) if pts.ndim == 2 else 0} points; at least {MIN_POINTS} "
                              f"are needed to place the knee")
     thigh_model, thigh_normals = model.thigh_samples()
-    # the seen thigh starts a little above the model's sampled thigh, so that it lies over it
-    above = model.thigh_from + 0.1 * model.anatomy.width
-    thigh_seen = pts[pts[:, 1] > above]
+    thigh_seen, above = _seen_thigh(model, pts)
     if len(thigh_seen) < MIN_THIGH_POINTS:
         raise KneeInputError(f"only {len(thigh_seen)} depth points on the thigh (more than {above - model.joint_y:.0f} "
                              f"mm above the joint line); at least {MIN_THIGH_POINTS} are needed for the registration")
@@ -234,6 +232,13 @@ def register_to_model(model: AssociationModel, points, iterations: int = 60) -> 
         raise KneeInputError(f"the registration of the point cloud to the model failed (ICP fitness {fitness:.2f}, "
                              f"below {MIN_ICP_FITNESS})")
     return pts @ T_reg[:3, :3].T + T_reg[:3, 3], fitness, T_reg
+
+
+def _seen_thigh(model: AssociationModel, points) -> tuple[np.ndarray, float]:
+    """The depth points (model frame) on the thigh: above the model's thigh band, plus a tenth of the knee's
+    width, so that they lie over it; and that height (model frame y, mm)."""
+    above = model.thigh_from + 0.1 * model.anatomy.width
+    return points[points[:, 1] > above], above
 
 
 def _thigh_icp(points, thigh_model, thigh_normals, iterations: int) -> tuple[np.ndarray, float]:
@@ -329,9 +334,8 @@ def place_along_thigh(model: AssociationModel, est: FlexionEstimate, points_est,
 
     Returns the corrected transform (4, 4) and the :class:`AxialPlacement`."""
     thigh_model, thigh_normals = model.thigh_samples()
-    above = model.thigh_from + 0.1 * model.anatomy.width
     pts = np.asarray(points_est, float)
-    thigh = pts[pts[:, 1] > above][::3]
+    thigh = _seen_thigh(model, pts)[0][::3]  # the points register_to_model registered
     c = thigh.mean(axis=0)
     g = _quarters(thigh)
     thigh_sd = _jackknife_sd([_thigh_icp(thigh[g != k], thigh_model, thigh_normals, iterations)[0]
@@ -580,6 +584,11 @@ _POSED_SKINS: dict = {}
 FLEXION_SKINS = ("blend", "fem")
 
 
+def _check_flexion_skin(posed_by) -> None:
+    if posed_by not in FLEXION_SKINS:
+        raise KneeInputError(f"the flexion estimate's skin must be one of {', '.join(FLEXION_SKINS)}, got {posed_by!r}")
+
+
 def skin_model(model: AssociationModel, prior: Mechanism, posed_by: str = "blend") -> SkinModel:
     """The model's skin posed by ``prior`` at any flexion, for the flexion estimate: the phantom's parts
     for a model of a phantom; otherwise the subject's own skin, along :func:`tibia_path`, blended between its
@@ -594,8 +603,7 @@ def skin_model(model: AssociationModel, prior: Mechanism, posed_by: str = "blend
     of the cases instead of 83 %, and on the phantom's envelope of rigid capsules, a truth skin that tissue
     does not make, both reverse (the demo at 60 deg: (iii) 1.8 to 6.9 mm, (iv) 2.0 to 7.7 mm): README,
     BENCHMARKS.md."""
-    if posed_by not in FLEXION_SKINS:
-        raise KneeInputError(f"the flexion estimate's skin must be one of {', '.join(FLEXION_SKINS)}, got {posed_by!r}")
+    _check_flexion_skin(posed_by)
     if model.phantom is not None:
         return SkinModel(prior, model.phantom)
     if posed_by == "blend":
@@ -776,9 +784,7 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     their jackknife spreads (:func:`place_along_thigh`); off: the thigh's kept as it is."""
     if method not in METHODS:
         raise KneeInputError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
-    if flexion_skin not in FLEXION_SKINS:  # here, not as a failed estimate that falls back to the paper's method
-        raise KneeInputError(f"the flexion estimate's skin must be one of {', '.join(FLEXION_SKINS)}, got "
-                             f"{flexion_skin!r}")
+    _check_flexion_skin(flexion_skin)  # here, not as a failed estimate that falls back to the paper's method
     if method == "paper":
         return paper_method(model, points, **paper_options)
     t0 = time.perf_counter()
