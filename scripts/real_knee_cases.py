@@ -70,27 +70,13 @@ def main():
         T = joint_to_pose(truth.motion_at(flexions)[0])
         T_scan = joint_to_pose(truth.motion_at(np.array([anatomy.scan_tf[0]]))[0][0])
     else:
-        # a measured motion, not a mechanism's: the lenhart2015 knee's joint coordinates (its anatomical frames)
-        import tempfile
+        # a measured motion, not a mechanism's: the lenhart2015 knee's joint coordinates (its anatomical
+        # frames), transferred as the case set does (flexion as measured; the other coordinates as this
+        # knee's own at its scan plus the measured knee's change from the start of its arc)
+        from knee.app.experiments.case_set import measured_motion, transferred
 
-        from knee.fitting.reference_data import lenhart_subject
-        from knee.fitting.subject import load_subject
-
-        with tempfile.TemporaryDirectory() as tmp:
-            measured = load_subject(lenhart_subject(args.data, Path(tmp) / "lenhart2015")).motion.tf
-        k = int(np.argmax(measured[:, 0]))  # the trial flexes from 27 to 47 deg, then extends to 10 deg
-        halves = (measured[: k + 1], measured[k:])
-        up = max(halves, key=lambda h: np.ptp(h[:, 0]))  # the half that covers more flexion
-        order = np.argsort(up[:, 0])
-
-        def at(a):
-            return np.array([np.interp(a, up[order, 0], up[order, j]) for j in range(6)])
-
-        # transferred as joint coordinates: the measured rotations as they are; the translations as this
-        # knee's own at its scan plus the measured knee's change from the start of its arc (the two knees'
-        # origins differ, their translations' changes over flexion are what carries over)
-        q = np.array([at(a) for a in np.radians([20.0, 30.0, 45.0])])
-        q[:, 3:] = anatomy.scan_tf[3:] + (q[:, 3:] - up[order[0], 3:])
+        q, start = measured_motion(args.data, [20.0, 30.0, 45.0])
+        q = transferred(q, start, anatomy.scan_tf)
         T, T_scan = joint_to_pose(q), None
     if T_scan is not None:
         tf = pose_to_joint(T @ invert_poses(T_scan) @ anatomy.tibia_pose)

@@ -263,3 +263,20 @@ def test_compare_on_a_case_set_writes_its_report(small_case_set, tmp_path, capsy
     assert "## Targets" in md and "(iv) kinematics" in md and (out / "compare.png").stat().st_size > 0
     rows = (out / "compare.csv").read_text().splitlines()
     assert len(rows) == 2 and "mismatch_mm" in rows[0]
+
+
+def test_a_measured_motion_is_carried_over_as_its_change_from_the_start_of_its_arc():
+    """Joint coordinates of one knee carried to another: flexion as measured; adduction, axial rotation and
+    the translations as the other knee's at its scan plus their change from the start. The start of the arc
+    lands on the other knee's own scanned neutral (not the measured knee's rotations, whose frames' neutral
+    differs: the bundled volunteer's tibia sits 25 deg from lenhart2015's at extension)."""
+    from knee.app.experiments.case_set import transferred
+
+    start = np.array([0.18, -0.01, 0.05, -8.0, -24.6, 2.3])
+    scan = np.array([0.09, 0.012, -0.43, -6.3, -27.3, 0.4])
+    q = np.vstack([start, start + [0.35, 0.02, -0.03, -4.8, 1.9, -1.7]])
+    out = transferred(q, start, scan)
+    np.testing.assert_allclose(out[0], np.r_[start[0], scan[1:]], atol=1e-12)
+    np.testing.assert_allclose(out[1] - out[0], q[1] - q[0], atol=1e-12)
+    np.testing.assert_allclose(out[:, 0], q[:, 0], atol=1e-12)
+    np.testing.assert_allclose(q, np.vstack([start, start + [0.35, 0.02, -0.03, -4.8, 1.9, -1.7]]))  # input kept

@@ -358,3 +358,62 @@ def test_grid_nodes_tied_to_a_bone_only_weakly_are_held_at_the_reference():
     free = ~s.fixed
     assert np.all(soft[free] | (w[free] >= tie))
     assert np.any(free & ~soft)  # nodes tied strongly to a bone alone stay free
+
+
+def test_displacement_tethers_pull_neighbours_together_and_ignore_a_translation():
+    """Closed forms of the tethers on a three-node chain 0-1-2 (k = 2): moving the middle node by d pulls it
+    back by 2 k d and each end towards it by k d; translating all three costs nothing; ``apply`` and
+    ``matrix`` are the same linear map."""
+    from knee.models.fem.fields import DisplacementTethers
+
+    X = np.array([[0.0, 0, 0], [10, 0, 0], [20, 0, 0]])
+    t = DisplacementTethers(3, [[0, 1], [1, 2]], X, k=2.0)
+    d = np.array([0.3, -0.5, 1.2])
+    x = X.copy()
+    x[1] += d
+    f = t.forces(x)
+    np.testing.assert_allclose(f, [2.0 * d, -4.0 * d, 2.0 * d], atol=1e-12)
+    np.testing.assert_allclose(t.forces(X + [5.0, -3.0, 7.0]), 0.0, atol=1e-12)
+    p = np.random.default_rng(0).normal(size=(3, 3))
+    np.testing.assert_allclose(t.apply(p).ravel(), t.matrix() @ p.ravel(), atol=1e-12)
+    np.testing.assert_allclose(t.forces(X + p), -t.apply(p), atol=1e-12)
+
+
+def test_grid_nodes_left_without_soft_cells_on_a_real_knee_cost_energy_to_move(visible_human):
+    """The Visible Human's knee flexed to 60 and 90 deg along a template prior: the prior's initialisation
+    drops the crushed cells behind the knee and leaves free grid nodes with no soft cell, held only through
+    the bone nodes embedded in their cells. On these nodes alone (the rest held) the soft and bone
+    stiffness has exact zero-energy motions, which made the surface phase blow up; with the tethers every
+    motion of them costs at least half a soft node's stiffness."""
+    import dataclasses
+    import math
+
+    from knee.app.experiments.case_set import template_prior
+    from knee.fitting.optimize import perturb_endpoints
+    from knee.models.fem.anatomy import anatomy_in_femur_frame, clip_anatomy, default_collaterals
+    from knee.models.fem.methods import initialise_from_prior, quasi_static
+    from knee.models.fem.scene import build_knee_model
+    from knee.models.mechanism import Mechanism
+
+    vh = visible_human
+    anatomy = clip_anatomy(anatomy_in_femur_frame(vh.femur, vh.tibia, vh.skin, vh.frames["femur"], vh.frames["tibia"],
+                                                  name=vh.name))
+    mcl, lcl = default_collaterals(anatomy)
+    anatomy = dataclasses.replace(anatomy, mcl=mcl, lcl=lcl)
+    prior = Mechanism(perturb_endpoints(template_prior(anatomy)[0], 1.0, 2.0, seed=3))
+    singular = 0
+    for flexion in (60.0, 90.0):
+        model = build_knee_model(anatomy, prior=prior)
+        with quasi_static(model.solver):
+            initialise_from_prior(model, prior, math.radians(flexion))
+        lone = model.bone_only_nodes
+        assert lone.any() and not np.any(model.solver.fixed[lone])
+        dof = (3 * np.nonzero(lone)[0][:, None] + np.arange(3)).ravel()
+        K = (model.soft.matrix() + model.femur.matrix() + model.tibia.matrix()).tocsr()[dof][:, dof].toarray()
+        T = model.tethers.matrix().tocsr()[dof][:, dof].toarray()
+        diag = model.soft.matrix().diagonal().reshape(-1, 3).mean(axis=1)
+        soft_node = np.median(diag[diag > 0])
+        singular += np.linalg.eigvalsh(K)[0] < 1e-6 * soft_node
+        assert np.linalg.eigvalsh(K + T)[0] > 0.5 * soft_node
+        assert model.tethers in model.solver.fields
+    assert singular >= 1  # the case the tethers are for is there

@@ -100,6 +100,30 @@ class MappedBoneElasticity:
         return (J3.T @ Kb @ J3).tocsr()
 
 
+class DisplacementTethers:
+    """Zero-length springs between the displacements (from ``X_ref``) of grid nodes joined by a cell edge:
+    ``f = -k L (x - X_ref)`` with L the graph Laplacian of ``edges`` (E, 2). A linear stand-in for tissue
+    that has been dropped, valid for small motions from the reference."""
+
+    def __init__(self, n_nodes: int, edges, X_ref, k: float):
+        edges = np.asarray(edges, int).reshape(-1, 2)
+        E = len(edges)
+        inc = sp.csr_matrix((np.r_[np.ones(E), -np.ones(E)], (np.r_[np.arange(E), np.arange(E)], edges.T.ravel())),
+                            shape=(E, n_nodes))
+        self.L = (float(k) * (inc.T @ inc)).tocsr()
+        self.K = sp.kron(self.L, sp.identity(3, format="csr"), format="csr")
+        self.X_ref = np.array(X_ref, float)
+
+    def forces(self, x):
+        return -(self.L @ (np.asarray(x, float) - self.X_ref))
+
+    def apply(self, p):
+        return self.L @ np.asarray(p, float)
+
+    def matrix(self):
+        return self.K
+
+
 class MappedSprings:
     """Linear springs between pairs of embedded points (e.g. collateral ligaments).
 

@@ -60,8 +60,8 @@ from knee.foundations.conventions import invert_poses, joint_to_pose, transform_
 from knee.foundations.errors import DivergenceError, KneeInputError
 from knee.foundations.geometry import rigid_register
 from knee.foundations.pointclouds import icp, voxel_downsample
-from knee.models.fem.elements import hex_inverted
-from knee.models.fem.fields import MappedSprings, affine_point_map
+from knee.models.fem.elements import HEX_CORNERS, hex_inverted
+from knee.models.fem.fields import DisplacementTethers, MappedSprings, affine_point_map
 from knee.models.fem.forces import BoneForces, SurfaceForces
 from knee.models.fem.mapping import TrilinearMapping
 from knee.models.fem.scene import AssociationModel, bone_cell_masks, knee_angles
@@ -684,16 +684,48 @@ def make_reference(model: AssociationModel) -> None:
     # w, the bone lends the node about w^2 of its stiffness, less than one soft cell's below
     # sqrt(soft E / bone E) (0.026). Left free, such a node (weights 0.005 and 0.002 at a knee flexed to
     # 90 deg, every soft cell around it dropped) flew a metre under the skin's springs within ten steps.
-    alive = np.zeros(len(X), bool)
-    alive[model.grid.cells[model.soft.el.alive].ravel()] = True
+    soft = np.zeros(len(X), bool)
+    soft[model.grid.cells[model.soft.el.alive].ravel()] = True
+    alive = soft.copy()
     tie = math.sqrt(model.settings.soft_E / model.settings.bone_E)
     for bone in (model.femur, model.tibia):
         J = bone.map.J
         alive[J.indices[np.abs(J.data) >= tie]] = True
     s.fixed = s.fixed | ~alive
     model.isolated_at_init = int((~alive).sum())
+    model.bone_only_nodes = ~soft & ~s.fixed
+    tether_bone_only_nodes(model)
     s.set_prescribed(None)  # after the new fixed nodes: the free set is computed from them
     s.invalidate()
+
+
+#: The twelve edges of a hexahedral cell, as pairs of its corners (corners differing in one coordinate).
+_HEX_EDGES = np.array([(i, j) for i in range(8) for j in range(i + 1, 8)
+                       if np.count_nonzero(HEX_CORNERS[i] != HEX_CORNERS[j]) == 1])
+
+
+def tether_bone_only_nodes(model: AssociationModel) -> None:
+    """Tie every free grid node without a soft cell (``model.bone_only_nodes``) to its edge neighbours by
+    zero-length springs on their displacements from the present reference, each about a sixth of a soft
+    node's stiffness (the median diagonal of the soft cells' stiffness over the nodes that have them), so
+    that such a node is about as stiff as one inside the tissue. Without them, where a few bone nodes
+    embedded in its cells fix only combinations of the cells' eight nodes, some motions of those nodes cost
+    no energy: on a real knee at 45 deg two such nodes (bone weights 0.074 and 0.035, every cell around
+    them dropped) drifted 50-60 mm per step and the surface phase blew up. Replaces the tethers of an
+    earlier reference."""
+    s = model.solver
+    if model.tethers is not None and model.tethers in s.fields:
+        s.fields.remove(model.tethers)
+    model.tethers = None
+    lone = model.bone_only_nodes
+    if lone is None or not lone.any():
+        return
+    e = model.grid.cells[:, _HEX_EDGES].reshape(-1, 2)
+    e = np.unique(np.sort(e[lone[e].any(axis=1)], axis=1), axis=0)
+    diag = model.soft.matrix().diagonal().reshape(-1, 3).mean(axis=1)
+    k = float(np.median(diag[diag > 0])) / 6.0
+    model.tethers = DisplacementTethers(model.grid.n_nodes, e, s.x.copy(), k)
+    s.fields.append(model.tethers)
 
 
 def link_springs(model: AssociationModel, prior: Mechanism, k: float = 1000.0, T_tibia: np.ndarray | None = None):

@@ -95,6 +95,11 @@ class AssociationModel:
     #: its configuration the reference (:func:`knee.models.fem.methods.initialise_from_prior`)
     inverted_at_init: int = 0
     isolated_at_init: int = 0
+    #: grid nodes left free at that reference with no soft cell around them (tied to the tissue only through
+    #: the bone nodes embedded near them); None before one
+    bone_only_nodes: np.ndarray | None = None
+    #: the springs that tie those nodes to their neighbours (:func:`knee.models.fem.methods.make_reference`)
+    tethers: object = None
     _thigh: tuple | None = field(default=None, repr=False)
 
     @property

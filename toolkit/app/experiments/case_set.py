@@ -115,11 +115,15 @@ def measured_motion(data_folder, flexions_deg) -> np.ndarray:
 
 
 def transferred(q, start, scan_tf) -> np.ndarray:
-    """Joint coordinates ``q`` (n, 6) of one knee carried to another scanned at ``scan_tf``: the rotations
-    as measured; the translations as the other knee's at its scan plus the change from ``start`` (the two
-    knees' origins differ; the change of their translations over flexion is what carries over)."""
+    """Joint coordinates ``q`` (n, 6) of one knee carried to another scanned at ``scan_tf``: flexion as
+    measured; the other five (adduction, axial rotation, the three translations) as the other knee's at its
+    scan plus their change from ``start``. Two knees' anatomical frames are built from different landmarks,
+    so their origins and their neutral adduction and axial rotation differ (the bundled volunteer's frames
+    put its tibia 25 deg from the measured knee's at extension); what carries over is how each coordinate
+    changes with flexion. Carrying the rotations as measured twisted the phantom's tibia 25-30 deg from its
+    own scanned neutral, which no knee does at 20-45 deg of flexion."""
     q = np.array(q, float)
-    q[:, 3:] = np.asarray(scan_tf)[3:] + (q[:, 3:] - np.asarray(start)[3:])
+    q[:, 1:] = np.asarray(scan_tf)[1:] + (q[:, 1:] - np.asarray(start)[1:])
     return q
 
 
