@@ -19,8 +19,10 @@ sees a truth; :mod:`knee.models.evaluation` measures a reconstruction against on
   about the shank's axis left at the prior's). (iv) stops there: the bones posed by the mechanism. (ii)
   moves femur and tibia along the mechanism's path to that pose with the grid nodes of their cells
   prescribed (Dirichlet conditions, 4 increments, the correction blended in along them), makes that
-  configuration the stress-free reference (with ``refine_on_posed_skin``, places the cloud again on the
-  skin so posed: :func:`register_to_posed_skin`), then runs the surface phase with the paper's two springs.
+  configuration the stress-free reference (:func:`make_reference`: the crushed cells behind the knee
+  dropped, grid nodes tied to a bone only weakly held, the other nodes left without a soft cell tethered
+  to their neighbours; with ``refine_on_posed_skin``, places the cloud again on the skin so posed:
+  :func:`register_to_posed_skin`), then runs the surface phase with the paper's two springs.
   The femur is where the thigh's registration puts it, except along and about the thigh's axis, where
   the thigh's placement is weighed against the whole posed skin's by their jackknife spreads
   (:func:`place_along_thigh`; a near-cylindrical thigh under skin mismatch slides tens of mm).
