@@ -8,7 +8,8 @@ What makes the cases honest:
 - the truth's bone motion is not the prior's: the truth mechanism's motion (the phantom's own parameter
   set; for the Visible Human, a template scaled to the knee) plus a random deviation of the tibia, 1-3 mm
   and 2-5 deg ("mechanism+deviation"), and a measured motion, lenhart2015's dynamic MRI transferred as
-  joint coordinates ("measured"); the prior is the truth mechanism with every TF link endpoint moved
+  joint coordinates ("measured"; :func:`transferred`: its flexion, and the change of the other five from
+  the start of its arc); the prior is the truth mechanism with every TF link endpoint moved
   1-2 mm;
 - the truth's flexed skin comes from another model of the tissue (:mod:`knee.models.fem.tissue`:
   conforming hyperelastic tetrahedra, not the association model's embedding grid), plus a smooth random
