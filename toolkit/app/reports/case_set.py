@@ -85,10 +85,12 @@ def flexion_targets(rows) -> list[str]:
     lines = []
     if seen:
         within = sum(err[id(r)] <= 2.0 for r in seen)
+        off = [r for r in seen if err[id(r)] > 2.0]
         lines.append(f"(iii) flexion where the camera sees the shank ({len(seen)} cases, >= {MIN_SEEN_SHANK} depth points "
                      f"on it): median error {_median(err[id(r)] for r in seen):.2f} deg, {within} of {len(seen)} "
-                     f"within 2 deg (target: all): {'met' if within == len(seen) else 'NOT met'}; "
-                     f"{sum(warned_unseen(r) for r in seen)} of them warned")
+                     f"within 2 deg (target: all): {'met' if within == len(seen) else 'NOT met'}"
+                     + (f"; of the {len(off)} further off, {sum(warned_unseen(r) for r in off)} warned that the view "
+                        f"shows the flexion poorly" if off else ""))
     if unseen:
         warned = sum(warned_unseen(r) for r in unseen)
         lines.append(f"(iii) flexion where the camera hardly sees the shank ({len(unseen)} cases): median error "
