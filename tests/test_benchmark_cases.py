@@ -165,6 +165,26 @@ def test_case_set_truth_and_rough_pose(small_case_set):
         assert depth.dtype == np.float32 and (depth > 0).mean() > 0.05
 
 
+def test_case_set_cases_do_not_depend_on_the_subset_built(small_case_set, tmp_path):
+    """Each case draws from its own stream: a set built with only the 1 mm mismatch holds the same 1 mm cases
+    (deviation, mismatch field, noise, rough pose) as the set built with 0 and 1 mm; another seed does not
+    (a builder drawing everything from one stream in order would give the 1 mm cases new draws here)."""
+    from knee.app.experiments.case_set import build_case_set, read_case_set
+
+    sub = build_case_set(tmp_path / "sub", seed=4, data=None, mechanism_flexions=(40.0,), mismatches=(1.0,))
+    full = {c["id"]: c for c in read_case_set(small_case_set)["case"]}
+    cases = read_case_set(sub)["case"]
+    assert len(cases) == 3
+    for c in cases:
+        f = full[c["id"]]
+        assert c["truth_tf"] == f["truth_tf"]
+        np.testing.assert_array_equal(np.load(sub / c["depth"]), np.load(small_case_set / f["depth"]))
+        np.testing.assert_array_equal(np.loadtxt(sub / c["initial_pose"]), np.loadtxt(small_case_set / f["initial_pose"]))
+    other = build_case_set(tmp_path / "other", seed=5, data=None, mechanism_flexions=(40.0,), mismatches=(1.0,))
+    c = read_case_set(other)["case"][0]
+    assert c["truth_tf"] != full[c["id"]]["truth_tf"]
+
+
 def test_case_set_runs_and_measures_against_its_truth(small_case_set):
     from knee.app.experiments.case_set import run_case_set
 

@@ -36,6 +36,7 @@ import math
 import tempfile
 import time
 import tomllib
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -181,6 +182,14 @@ def _anatomies(out: Path, data, seed: int, names) -> list[tuple[Anatomy, Mechani
     return res
 
 
+def case_rng(seed: int, *keys: str) -> np.random.Generator:
+    """The random stream of one part of the case set (a pose's deviation, a skin's mismatch field, a view's
+    noise and rough pose), seeded by the set's seed and that part's names: building a subset of the cases
+    (one anatomy, one family, other flexions or mismatches) draws the same numbers for the cases it shares
+    with the full set."""
+    return np.random.default_rng([int(seed), zlib.crc32("/".join(keys).encode("utf-8"))])
+
+
 def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible-human-male"),
                    families=("mechanism+deviation", "measured"), progress: Callable[[str], None] | None = None,
                    mechanism_flexions=MECHANISM_FLEXIONS, measured_flexions=MEASURED_FLEXIONS,
@@ -188,9 +197,9 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
     """Build the case set into ``out`` (a new folder; see the module docstring). ``data``: the folder
     holding ``visible-human-male/`` and ``lenhart2015/``; without it, the phantom's mechanism cases only.
     Each pose is seen from the paper's placement at every skin mismatch, and from the other placements at
-    1 mm (or at the middle mismatch given)."""
+    1 mm (or at the middle mismatch given). Each pose, mismatch field and view draws from its own stream
+    (:func:`case_rng`), so a case is the same whichever subset of the set is built."""
     out = Path(out)
-    rng = np.random.default_rng(seed)
     say = progress or (lambda text: None)
     if data is None or not Path(data).is_dir():
         anatomies = tuple(a for a in anatomies if a == "phantom")
@@ -211,7 +220,8 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
                 T = joint_to_pose(truth.motion_at(np.radians(mechanism_flexions))[0])
                 T_scan = joint_to_pose(truth.motion_at(np.array([scan[0]]))[0][0])
                 for fl, Tm in zip(mechanism_flexions, T):
-                    dev = random_pose(rng, DEVIATION_DEG, DEVIATION_MM, np.zeros(3))
+                    dev = random_pose(case_rng(seed, entry.name, family, f"{fl:g}"), DEVIATION_DEG, DEVIATION_MM,
+                                      np.zeros(3))
                     poses.append((family, fl, Tm @ invert_poses(T_scan) @ anatomy.tibia_pose @ dev))
             elif family == "measured":
                 q, start = measured_motion(data, measured_flexions)
@@ -228,12 +238,15 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
                 f"({posed.inverted} inverted tetrahedra)")
             normals = np.asarray(skin.vertex_normals)
             for mm in mismatches:
-                verts = smooth_surface_field(skin.vertices, normals, mm, FIELD_WIDTHS * anatomy.width, rng)
+                pose_id = f"{entry.name}-{family.split('+')[0]}-{fl:g}-{mm:g}mm"
+                verts = smooth_surface_field(skin.vertices, normals, mm, FIELD_WIDTHS * anatomy.width,
+                                             case_rng(seed, pose_id))
                 cams = PLACEMENTS if mm == mismatches[len(mismatches) // 2] else {"paper": PLACEMENTS["paper"]}
                 for cname, (az, el, dist) in cams.items():
+                    cid = f"{pose_id}-{cname}"
+                    rng = case_rng(seed, cid)
                     cam = default_camera(distance=dist, azimuth_deg=az, elevation_deg=el, target=centre)
                     depth = DepthNoise().apply(render_depth(verts, skin.faces, cam), rng)
-                    cid = f"{entry.name}-{family.split('+')[0]}-{fl:g}-{mm:g}mm-{cname}"
                     folder = out / "cases" / cid
                     folder.mkdir(parents=True)
                     np.save(folder / "depth.npy", depth.astype(np.float32))
