@@ -288,6 +288,42 @@ def test_rough_registration_keeps_the_better_of_its_reach_schedules(volunteer, s
     assert rot < 10.0 and shift < 15.0, (rot, shift)
 
 
+def test_rough_registration_tries_the_global_starts_where_the_guess_led_it_astray(volunteer, scene, monkeypatch):
+    """A guess within its bounds (25 deg, 40 mm) is refined alone; a guess 90 deg and 100 mm off, beyond
+    them, leads the ICP to the leg turned upside down (177 deg off the truth, fewer points on the skin),
+    so the global registration's starts are tried as well and the better match kept, near the truth (the
+    scene's world is the model frame)."""
+    from scipy.spatial.transform import Rotation
+
+    import knee.models.prior as P
+
+    ph, _, pts = scene
+    sk = SkinModel(volunteer, ph)
+    calls = []
+    original = P.global_register
+    monkeypatch.setattr(P, "global_register", lambda *a, **k: calls.append(1) or original(*a, **k))
+
+    def guess(deg, mm):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(math.radians(deg) * np.array([0.6, 0.0, 0.8])).as_matrix()
+        T[:3, 3] = mm * np.array([0.6, -0.8, 0.0])
+        return T
+
+    def off(r):
+        T = r.T_model_world
+        rot = math.degrees(math.acos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+        return rot, float(np.linalg.norm(transform_points(T, pts) - pts, axis=1).mean())
+
+    P.register_roughly(sk, pts, guess(25.0, 40.0))
+    assert not calls
+    alone = P.register_roughly(sk, pts, guess(90.0, 100.0), guess_within=(1e9, 1e9))  # the guess trusted
+    assert not calls and off(alone)[0] > 90.0
+    r = P.register_roughly(sk, pts, guess(90.0, 100.0))
+    assert calls and r.inliers > alone.inliers + 0.1
+    rot, shift = off(r)
+    assert rot < 10.0 and shift < 15.0, (rot, shift)
+
+
 def test_the_fem_posed_skin_is_the_fems_skin(volunteer):
     """The flexion estimate's knee band posed by the association model (``skin_model(..., "fem")``) is
     where the FEM puts the skin: at an angle between the sweep's, a separate FEM solve there (8 increments

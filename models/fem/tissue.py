@@ -255,11 +255,13 @@ class TetTissue:
         return float(np.dot(self.vol, W)), g, sp.csc_matrix((data, self._indices, self._indptr),
                                                                shape=(self._n, self._n))
 
-    def pose(self, T_tibia, tolerance: float = 1e-2, max_iterations: int = 60) -> "PosedTissue":
+    def pose(self, T_tibia, tolerance: float = 1e-2, max_iterations: int = 150) -> "PosedTissue":
         """The tissue's equilibrium with the femur held and the tibia at ``T_tibia`` (4, 4; the tibia's frame
         in the femur frame), through increments of at most :data:`INCREMENT_DEG`. ``tolerance``: the
         largest Newton step at convergence, in node spacings. Raises :class:`KneeError` when an increment
-        does not converge."""
+        does not converge in ``max_iterations`` (the fold behind a knee flexed to 90 deg can take 70: measured
+        on the Visible Human at 90 deg with a 2-5 deg deviation, 73 iterations, 2 min, 157 inverted
+        tetrahedra; most increments take 3-16)."""
         m = self.mesh
         rel = np.asarray(T_tibia, float) @ np.linalg.inv(self.T_scan)  # the tibia's motion from the scan
         rot = Rotation.from_matrix(rel[:3, :3])
