@@ -45,9 +45,11 @@ def test_example_fem_with_prior():
     assert r["points"] == 177560
     assert abs(r["flexion_error_deg"]) < 1.5
     # the solver's refactorisations follow measured times: results agree to its tolerance, not bit for bit
-    assert r["footprints_mm"] == pytest.approx(1.634, abs=0.05)
-    assert r["epiphysis_mm"] == pytest.approx(3.899, abs=0.05)
-    assert r["tibia_correction_deg"] == pytest.approx(2.73, abs=0.1)
+    # (with the femur placed again on the FEM-posed skin, the default: the tibia's correction made again
+    # from the shank's points so moved; by the thigh alone 1.634 mm, 3.899 mm and 2.73 deg)
+    assert r["footprints_mm"] == pytest.approx(1.825, abs=0.05)
+    assert r["epiphysis_mm"] == pytest.approx(4.312, abs=0.05)
+    assert r["tibia_correction_deg"] == pytest.approx(0.84, abs=0.1)
 
 
 def readme_snippets() -> list[str]:

@@ -827,11 +827,12 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     points so moved and move the tibia there. On by default: the FEM posing the subject's skin with the
     corrected tibia is closer to a flexed leg than the blended skin of the flexion estimate, and its knee
     fixes the femur along the thigh's axis. On the honest benchmark's case set it takes (iii)'s median
-    footprint error from 3.52 to 2.78 mm at 0-1 mm skin mismatch and from 3.88 to 3.37 mm over all cases
-    (README, BENCHMARKS.md). The points below the joint line stay out of it: with the knee's lower half in
-    too (down to a quarter width below), 3.82 mm at 0-1 mm (the skin over the patellar tendon, flattened
-    in a flexed leg, pulls the femur back). On the demo's truth, the phantom's envelope of rigid capsules
-    (a skin no tissue makes), it costs (iii) 1.80 -> 2.74 mm.
+    footprint error from 3.48 to 3.21 mm at 0-1 mm skin mismatch, 5.77 to 4.98 mm at 2 mm and 3.66 to 3.41
+    mm over all cases (README, BENCHMARKS.md). The points below the joint line stay out of it: on the
+    previous build of the case set, with the knee's lower half in too (down to a quarter width below),
+    3.82 mm at 0-1 mm against 2.78 (the skin over the patellar tendon, flattened in a flexed leg, pulls the
+    femur back). On the demo's truth, the phantom's envelope of rigid capsules (a skin no tissue makes),
+    it costs (iii) 1.80 -> 2.74 mm.
     ``flexion_skin``: how the flexion estimate poses a subject's skin, "blend" or "fem" (:func:`skin_model`).
     ``weigh_axial``: the thigh's placement along and about its axis weighed against the whole skin's by
     their jackknife spreads (:func:`place_along_thigh`); off: the thigh's kept as it is."""
