@@ -255,7 +255,8 @@ def test_the_cloud_is_placed_on_the_posed_skin_along_the_thigh_axis_too(voluntee
 
     from knee.foundations.conventions import transform_points
     from knee.models.fem.mapping import TrilinearMapping
-    from knee.models.fem.methods import POSED_SKIN_BELOW_WIDTHS, initialise_from_prior, register_to_posed_skin
+    from knee.models.fem.methods import (MIN_THIGH_POINTS, POSED_SKIN_BELOW_WIDTHS, initialise_from_prior,
+                                         register_to_posed_skin)
     from knee.models.prior import small_pose
 
     model = build_association_model(volunteer)
@@ -282,6 +283,13 @@ def test_the_cloud_is_placed_on_the_posed_skin_along_the_thigh_axis_too(voluntee
         back = transform_points(T, transform_points(T_off, knee))
         errors[name] = np.sqrt(np.mean(np.sum((back - knee) ** 2, axis=1)))
     assert errors["cut"] < 0.5 and errors["all"] > 1.0, errors
+    # a cloud with too few points above the joint line to place the femur by (60, against MIN_THIGH_POINTS)
+    # places nothing: identity and fitness 0 (the method then keeps the thigh's placement and says so), not an
+    # ICP that a few points could drag anywhere
+    few = transform_points(T_off, knee[:: max(1, len(knee) // 60)][:60])
+    assert len(few) < MIN_THIGH_POINTS
+    T, fitness = register_to_posed_skin(model, np.vstack([few, shank]))
+    assert fitness == 0.0 and np.array_equal(T, np.eye(4))
 
 
 def _axial_case(monkeypatch, thigh_y, skin_y, thigh_rot_deg):

@@ -897,8 +897,9 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
                     corr = again
                     steps += move_tibia(model, corr.T[None])
             else:
-                notes.append(f"the cloud does not fit the posed skin (ICP fitness {fit_posed:.2f}): the femur stays "
-                             "where the thigh placed it")
+                notes.append(f"the cloud does not fit the posed skin (ICP fitness {fit_posed:.2f}; 0 when fewer than "
+                             f"{MIN_THIGH_POINTS} points lie above the joint line): the femur stays where the thigh "
+                             "placed it")
         if not corr.applied:
             notes.append(corr.note)
         surf = SurfaceForces(model.grid, model.skin_vertices, pts_model, k=2.0)
