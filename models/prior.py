@@ -129,6 +129,7 @@ class SkinModel:
     def __init__(self, mech: Mechanism, phantom: Phantom, length: float | None = None, n_samples: int = 6000):
         self.mech, self.phantom, self.length = mech, phantom, length
         self.shank_below = -30.0  # the phantom's knee ends about 30 mm below its femur frame's origin
+        self.width = float(np.ptp(np.asarray(phantom.femur.vertices)[:, 2]))  # medio-lateral (z)
         self._cache = {}
         meshes = [m for m, _ in phantom.skin_parts(np.eye(4), np.eye(4) if mech.has_pf else None, length)]
         self._setup(meshes, n_samples)
@@ -206,6 +207,7 @@ class SubjectSkinModel(SkinModel):
         self.mech, self.path = mech, path
         self._cache = {}
         y0, w = anatomy.joint_y, anatomy.width
+        self.width = float(w)
         self.shank_below = y0 - 0.05 * w
         self.T_scan = np.asarray(anatomy.tibia_pose, float)
         up, b, o = np.array([0.0, 1.0, 0.0]), self.BLEND * w, self.OVERLAP * w
@@ -455,6 +457,21 @@ def kinematic_estimate(mech: Mechanism, est: FlexionEstimate) -> tuple[np.ndarra
 TIBIA_PRIOR_MM = 2.0
 TIBIA_PRIOR_DEG = 3.0
 POINT_SD_MM = 2.0
+#: How far (in femoral widths) a skin model's error stays alike over the skin: a muscle's bulge, a fat pad,
+#: the skin flattened over a tendon. Points within it err together, so a shank seen by N depth points (4 mm
+#: voxels) tells what about N voxel^2 / (pi l^2) independent ones would (:func:`effective_point_sd`).
+ERROR_CORRELATION_WIDTHS = 0.25
+
+
+def effective_point_sd(width_mm: float, point_sd_mm: float = POINT_SD_MM,
+                       correlation_widths: float = ERROR_CORRELATION_WIDTHS) -> float:
+    """The standard deviation (mm) to give each depth point (4 mm voxels) in a least-squares fit to a skin
+    model whose error is correlated over ``correlation_widths`` of the knee's femoral width ``width_mm``:
+    ``point_sd_mm`` inflated by sqrt(pi) l / voxel, so that N points weigh as the N voxel^2 / (pi l^2)
+    independent patches they cover. Treated as independent, two thousand shank points let a skin mismatch
+    of 1-2 mm outweigh the prior's 2 mm and slide the tibia 10-15 mm along its own axis, into the femur
+    (measured on the honest benchmark's Visible Human)."""
+    return float(point_sd_mm * math.sqrt(math.pi) * correlation_widths * width_mm / VOXEL_MM)
 #: Fewest shank points to attempt the correction.
 MIN_CORRECTION_POINTS = 200
 #: The band (mm) around the prior's shank skin whose points the tibia's correction starts from, before it
@@ -506,15 +523,17 @@ def small_pose(xi) -> np.ndarray:
 
 
 def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float = TIBIA_PRIOR_MM, sigma_deg: float = TIBIA_PRIOR_DEG,
-                  point_sd_mm: float = POINT_SD_MM, band_mm: float = 8.0, iterations: int = 20,
-                  wide_band_mm: float | None = WIDE_BAND_MM, wide_iterations: int = 5) -> TibiaCorrection:
+                  point_sd_mm: float | None = None, band_mm: float = 8.0, iterations: int = 20,
+                  wide_band_mm: float | None = WIDE_BAND_MM, wide_iterations: int = 5,
+                  free=(0, 2, 3, 4, 5)) -> TibiaCorrection:
     """Move the tibia off the prior's path as far as the shank's depth points show, and no further.
 
     The mechanism at ``alpha`` places the tibia (relative to the femur) only as well as its parameters
     (about 2 mm per link endpoint); the skin around the shank, seen by the camera, shows where the shank
     is. A maximum a posteriori estimate of the tibia's pose correction ``D`` (``T = T_prior @ D``, in the
     tibia's frame): Gauss-Newton on the points' point-to-plane distances to the shank's skin (sd
-    ``point_sd_mm``) plus the prior's Gaussian (sd ``sigma_mm`` per translation, ``sigma_deg`` per
+    ``point_sd_mm``; None: :func:`effective_point_sd` of the skin's width, the skin model's error being
+    alike over a quarter of it) plus the prior's Gaussian (sd ``sigma_mm`` per translation, ``sigma_deg`` per
     rotation). The rotation about the shank's own axis (the tibia's y axis) is left at the prior's: the
     shank's skin is a surface of revolution about it, so the points cannot show it.
 
@@ -523,15 +542,18 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
     knee or the patella; in the first ``wide_iterations`` within ``wide_band_mm`` (:data:`WIDE_BAND_MM`;
     None: the narrow band throughout), so that a shank further off the prior's path than the narrow band
     is drawn in before the band narrows. With fewer than :data:`MIN_CORRECTION_POINTS` such points the
-    prior's pose is kept (stated in ``note``)."""
+    prior's pose is kept (stated in ``note``). ``free``: the components of ``xi`` estimated (rotation about
+    x, y, z, translation along x, y, z; by default all but the axial rotation, 1)."""
+    if point_sd_mm is None:
+        point_sd_mm = effective_point_sd(skin.width)
     posed = skin.at(alpha)
     T_prior = posed.parts[SHANK][1]
     shank = posed.parts[SHANK][0]
     pts = voxel_downsample(np.asarray(points_model, float), VOXEL_MM)
     # the other parts stay where the prior has them: they only decide which points belong to the shank
     others = np.delete(posed.part_distances(pts), SHANK, axis=0).min(axis=0)
-    free = [0, 2, 3, 4, 5]  # rotation about x and z, translation; the axial rotation (y) is not seen
-    prior_w = np.array([math.radians(sigma_deg) ** -2] * 2 + [sigma_mm ** -2] * 3)
+    free = list(free)  # rotation about x and z, translation; the axial rotation (y) is not seen
+    prior_w = np.array([math.radians(sigma_deg) ** -2] * 3 + [sigma_mm ** -2] * 3)[free]
     xi = np.zeros(6)
     D = np.eye(4)
     rms = []
@@ -568,3 +590,4 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
     c, nrm = shank.closest(local)
     after = float(np.sqrt(np.mean(np.einsum("ij,ij->i", local - c, nrm) ** 2)))
     return TibiaCorrection(T_prior, xi, n, rms[0], after)
+

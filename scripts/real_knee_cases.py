@@ -72,12 +72,11 @@ def main():
     else:
         # a measured motion, not a mechanism's: the lenhart2015 knee's joint coordinates (its anatomical
         # frames), transferred as the case set does (flexion as measured; the other coordinates as this
-        # knee's own at its scan plus the measured knee's change from the start of its arc)
-        from knee.app.experiments.case_set import measured_motion, transferred
+        # knee's own at its scan plus the measured knee's change from the start of its arc; then the tibia
+        # slid along its axis to the bones' clearance at the scan)
+        from knee.app.experiments.case_set import measured_poses
 
-        q, start = measured_motion(args.data, [20.0, 30.0, 45.0])
-        q = transferred(q, start, anatomy.scan_tf)
-        T, T_scan = joint_to_pose(q), None
+        T, T_scan = measured_poses(args.data, anatomy, [20.0, 30.0, 45.0]), None
     if T_scan is not None:
         tf = pose_to_joint(T @ invert_poses(T_scan) @ anatomy.tibia_pose)
     else:

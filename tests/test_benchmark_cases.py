@@ -305,3 +305,50 @@ def test_a_measured_motion_is_carried_over_as_its_change_from_the_start_of_its_a
     np.testing.assert_allclose(out[1] - out[0], q[1] - q[0], atol=1e-12)
     np.testing.assert_allclose(out[:, 0], q[:, 0], atol=1e-12)
     np.testing.assert_allclose(q, np.vstack([start, start + [0.35, 0.02, -0.03, -4.8, 1.9, -1.7]]))  # input kept
+
+
+def test_in_contact_slides_the_tibia_along_its_axis_to_the_clearance():
+    """A tibia pushed 5 mm into the femur along its own axis is slid back to the bones' scanned clearance,
+    its rotation and the other two directions untouched; the clearance is the least signed distance between
+    the two surfaces (a closed form: sliding a tibia held apart by c0 by s along its axis towards the femur
+    leaves c0 - s where the contact is along that axis)."""
+    from knee.app.experiments.case_set import bone_clearance, in_contact
+    from knee.models.fem.scene import phantom_anatomy
+    from knee.models.mechanism import Mechanism
+
+    anatomy, _ = phantom_anatomy(Mechanism.from_name("volunteer"))
+    T0 = anatomy.tibia_pose
+    c0 = bone_clearance(anatomy, T0)
+    assert c0 > 1.0  # the phantom's bones are held apart by their cartilage's room
+    pushed = T0.copy()
+    pushed[:3, 3] += 5.0 * T0[:3, 1]
+    assert bone_clearance(anatomy, pushed) < c0 - 3.0  # into the femur
+    back = in_contact(anatomy, pushed, c0)
+    assert bone_clearance(anatomy, back) == pytest.approx(c0, abs=0.02)
+    np.testing.assert_allclose(back[:3, :3], pushed[:3, :3], atol=1e-12)
+    moved = back[:3, 3] - pushed[:3, 3]
+    np.testing.assert_allclose(np.cross(moved, T0[:3, 1]), 0.0, atol=1e-9)  # along the tibia's axis only
+    assert np.linalg.norm(moved) == pytest.approx(5.0, abs=1.0)
+
+
+def test_measured_poses_keep_the_real_knees_bones_apart(shared_data):
+    """lenhart2015's motion carried to the Visible Human knee: as carried, its tibia enters the femur by
+    millimetres (the failure this guards); after the slide every pose keeps the scanned clearance."""
+    from knee.app.experiments.case_set import bone_clearance, measured_motion, measured_poses, transferred
+    from knee.fitting.reference_data import visible_human_subject
+    from knee.fitting.subject import load_subject
+    from knee.fitting.subject_anatomy import subject_anatomy
+    from knee.foundations.conventions import pose_to_joint
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as tmp:
+        anatomy = subject_anatomy(load_subject(visible_human_subject(shared_data, Path(tmp) / "vh")))
+    c0 = bone_clearance(anatomy, anatomy.tibia_pose)
+    q, start = measured_motion(shared_data, [20.0, 45.0])
+    carried = joint_to_pose(transferred(q, start, anatomy.scan_tf))
+    assert min(bone_clearance(anatomy, T) for T in carried) < c0 - 3.0
+    poses = measured_poses(shared_data, anatomy, [20.0, 45.0])
+    for T, Tc in zip(poses, carried):
+        assert bone_clearance(anatomy, T) == pytest.approx(c0, abs=0.02)
+        np.testing.assert_allclose(pose_to_joint(T)[:3], pose_to_joint(Tc)[:3], atol=1e-12)  # the rotations kept

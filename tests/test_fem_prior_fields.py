@@ -436,3 +436,30 @@ def test_grid_nodes_left_without_soft_cells_on_a_real_knee_cost_energy_to_move(v
         assert np.linalg.eigvalsh(K + T)[0] > 0.5 * soft_node
         assert model.tethers in model.solver.fields
     assert singular >= 1  # the case the tethers are for is there
+
+
+def test_bone_points_follow_the_bones_rigid_pose_where_the_grid_mixes_the_two_bones(volunteer):
+    """The tibia moved exactly to 60 deg along the prior's path (its cells prescribed): carried by the bones'
+    rigid poses (fitted to their tetrahedra's nodes) the ACL/PCL footprints land where the motion puts them,
+    to a few hundredths of a millimetre; interpolated in the grid, whose cells at the joint line hold both
+    bones, they land millimetres off, the error the benchmark measured before it used the rigid poses."""
+    import math
+
+    import knee.models.fem.methods as fm
+    from knee.app.experiments.cases import model_targets
+    from knee.foundations.conventions import invert_poses, transform_points
+
+    model = build_association_model(volunteer)
+    a = math.radians(60.0)
+    fm.initialise_from_prior(model, volunteer, a)
+    T_tibia = fm.tibia_path(volunteer, model, a)[0] @ invert_poses(model.tibia_pose)
+    r = fm.Reconstruction("links", 60.0, 0, 0.0, True, np.eye(4), model.grid, model.solver.x.copy(),
+                          bone_nodes=fm.bone_rest_nodes(model))
+    tg = model_targets(model, volunteer)
+    for bone, pts, T in (("tibia", tg.tibia[tg.tibia_footprints], T_tibia),
+                         ("femur", tg.femur[tg.femur_footprints], np.eye(4))):
+        want = transform_points(T, pts)
+        assert np.linalg.norm(r.bone_points(bone, pts) - want, axis=1).max() < 0.1
+        assert np.linalg.norm(r.locate(bone, pts) - want, axis=1).max() > 1.0
+    rigid = fm.Reconstruction("kinematics", 60.0, 0, 0.0, True, np.eye(4), rigid={"femur": np.eye(4), "tibia": T_tibia})
+    np.testing.assert_allclose(rigid.bone_points("tibia", pts), rigid.locate("tibia", pts))

@@ -150,6 +150,20 @@ class Reconstruction:
     bone_phase_end: str = ""
     bone_phase_flexion_deg: float = float("nan")
     history: dict = field(default_factory=dict, repr=False)
+    #: the FEM methods: each bone's tetrahedra's nodes at rest ``{"femur": (n, 3), "tibia": (m, 3)}``, model
+    #: frame, which :meth:`bone_points` fits the bone's rigid pose to
+    bone_nodes: dict | None = field(default=None, repr=False)
+
+    def bone_points(self, bone: str, rest_points) -> np.ndarray:
+        """Where points of a bone at rest (``(P, 3)``, model frame) are, carried by the bone's rigid pose,
+        world frame: for the FEM methods the least-squares rigid fit of the bone's tetrahedra's nodes
+        (:meth:`bone_pose`, what ``knee fem`` writes as the bone's pose), for the mechanism alone its pose.
+        A bone is rigid; the grid that embeds it is not, and where one of its cells holds both bones (at
+        the joint line, where the ACL and PCL footprints are) the grid's interpolation (:meth:`locate`) mixes
+        the two bones' motions."""
+        if self.grid_x is None or self.bone_nodes is None:
+            return self.locate(bone, rest_points)
+        return transform_points(self.bone_pose(bone, self.bone_nodes[bone]), np.asarray(rest_points, float))
 
     def bone_pose(self, bone: str, rest_nodes) -> np.ndarray:
         """The rigid pose (4, 4) that best carries a bone's rest points ``rest_nodes`` (P, 3; model frame at
@@ -165,6 +179,11 @@ class Reconstruction:
         if self.grid_x is not None:
             return transform_points(self.T_world_model, TrilinearMapping(self.grid, rest_points).apply(self.grid_x))
         return transform_points(self.rigid[bone], rest_points)
+
+
+def bone_rest_nodes(model: AssociationModel) -> dict:
+    """Each bone's tetrahedra's nodes at rest (model frame), for :meth:`Reconstruction.bone_points`."""
+    return {"femur": np.asarray(model.femur.el.X, float).copy(), "tibia": np.asarray(model.tibia.el.X, float).copy()}
 
 
 def bone_phase_stalled(flexions, steps: int = 10, deg: float = 0.5) -> bool:
@@ -491,7 +510,7 @@ def paper_method(model: AssociationModel, points, bone_force_scale: float = 1.0,
     r = Reconstruction("paper", flex, len(hist["step"]), time.perf_counter() - t_start, converged,
                        invert_poses(T_reg), model.grid, s.x.copy(), icp_fitness=fitness, steps_bone_phase=bone_steps,
                        bone_phase_end=bone_end, bone_phase_flexion_deg=bone_flex,
-                       history={k: np.asarray(v) for k, v in hist.items()})
+                       history={k: np.asarray(v) for k, v in hist.items()}, bone_nodes=bone_rest_nodes(model))
     if bone_end in ("stalled", "cap"):  # the paper's criterion not reached: say so
         r.notes.append(bone_phase_note(r))
     return r
@@ -939,7 +958,7 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     flex, _ = knee_angles(model)
     return Reconstruction(method, flex, steps, time.perf_counter() - t0, converged, T_world, model.grid, s.x.copy(),
                           notes=notes, icp_fitness=fitness, estimate=dataclasses.replace(est, skin=None),
-                          tibia_correction=corr, axial=axial)
+                          tibia_correction=corr, axial=axial, bone_nodes=bone_rest_nodes(model))
 
 
 #: Fraction of the points that must lie within 5 mm of the skin after the rough registration.

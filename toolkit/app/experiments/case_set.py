@@ -42,6 +42,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from scipy.optimize import brentq
 
 from knee.app.experiments.cases import CompareRow, reconstruction_row
 from knee.app.experiments.subject_cases import camera_target_errors, random_pose
@@ -55,6 +56,7 @@ from knee.foundations.conventions import invert_poses, joint_to_pose, pose_to_jo
 from knee.foundations.errors import KneeError, KneeInputError
 from knee.foundations.files import read_text
 from knee.foundations.pointclouds import backproject, voxel_downsample
+from knee.foundations.surfaces import SurfaceQuery
 from knee.models.fem.depth import DepthNoise, default_camera, render_depth
 from knee.models.fem.methods import PAPER_AT_BEST, reconstruct_in_camera
 from knee.models.fem.scene import build_knee_model, phantom_anatomy
@@ -127,6 +129,50 @@ def transferred(q, start, scan_tf) -> np.ndarray:
     q = np.array(q, float)
     q[:, 1:] = np.asarray(scan_tf)[1:] + (q[:, 1:] - np.asarray(start)[1:])
     return q
+
+
+def bone_clearance(anatomy, T_tibia) -> float:
+    """The least signed distance (mm) between the femur's and the tibia's surfaces with the tibia at
+    ``T_tibia`` (4, 4; its frame in the femur frame): the smallest of each bone's vertices' signed distances
+    to the other bone (negative: the bones overlap)."""
+    move = np.asarray(T_tibia, float) @ invert_poses(anatomy.tibia_pose)
+    qf, qt = SurfaceQuery.of(anatomy.femur), SurfaceQuery.of(anatomy.tibia)
+    tib = transform_points(move, np.asarray(anatomy.tibia.vertices, float))
+    fem = transform_points(invert_poses(move), np.asarray(anatomy.femur.vertices, float))
+    return float(min(qf.signed_distance(tib).min(), qt.signed_distance(fem).min()))
+
+
+def in_contact(anatomy, T_tibia, clearance: float, reach_mm: float = 30.0) -> np.ndarray:
+    """``T_tibia`` (4, 4; the tibia's frame in the femur frame) slid along the tibia's own long axis (its y)
+    until the bones are ``clearance`` apart (:func:`bone_clearance`), within 0.01 mm: along that axis the
+    joint's contact, not the motion carried from another knee, decides where the tibia is."""
+    T = np.asarray(T_tibia, float)
+
+    def slid(s):
+        out = T.copy()
+        out[:3, 3] += s * T[:3, 1]
+        return out
+
+    def f(s):
+        return bone_clearance(anatomy, slid(s)) - clearance
+
+    lo, hi = -reach_mm, reach_mm  # sliding proximally (s > 0) brings the bones together
+    if f(lo) < 0.0 or f(hi) > 0.0:
+        raise KneeError(f"the tibia cannot be brought to {clearance:.2f} mm from the femur within {reach_mm:.0f} mm "
+                        "along its axis")
+    return slid(brentq(f, lo, hi, xtol=0.01))
+
+
+def measured_poses(data, anatomy, flexions_deg) -> np.ndarray:
+    """The tibia's poses (n, 4, 4; femur frame) of ``anatomy`` under lenhart2015's measured motion at
+    ``flexions_deg``: the joint coordinates carried over (:func:`transferred`), then the tibia slid along its
+    own axis until the bones are as close as at the scan (:func:`in_contact`). Carried over as they are, the
+    measured knee's translations drove the Visible Human's tibia 4, 7 and 11 mm into its femur at 20, 30 and
+    45 deg (the two knees' frames put their origins differently about the condyles), a pose no knee takes
+    and no method that keeps the joint's contact can follow."""
+    q, start = measured_motion(data, flexions_deg)
+    clearance = bone_clearance(anatomy, anatomy.tibia_pose)
+    return np.stack([in_contact(anatomy, T, clearance) for T in joint_to_pose(transferred(q, start, anatomy.scan_tf))])
 
 
 @dataclass
@@ -224,8 +270,7 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
                                       np.zeros(3))
                     poses.append((family, fl, Tm @ invert_poses(T_scan) @ anatomy.tibia_pose @ dev))
             elif family == "measured":
-                q, start = measured_motion(data, measured_flexions)
-                for fl, Tm in zip(measured_flexions, joint_to_pose(transferred(q, start, scan))):
+                for fl, Tm in zip(measured_flexions, measured_poses(data, anatomy, measured_flexions)):
                     poses.append((family, fl, Tm))
             else:
                 raise KneeInputError(f"unknown case family {family!r}")

@@ -93,7 +93,7 @@ def true_target_positions(model: AssociationModel, mech: Mechanism, truth_tf) ->
 def evaluate(model: AssociationModel, mech: Mechanism, recon: Reconstruction, truth_tf) -> TargetErrors:
     """The target point errors of a reconstruction against the true TF pose (world frame)."""
     targets, true_f, true_t = true_target_positions(model, mech, truth_tf)
-    return target_errors(targets, recon.locate("femur", targets.femur), recon.locate("tibia", targets.tibia),
+    return target_errors(targets, recon.bone_points("femur", targets.femur), recon.bone_points("tibia", targets.tibia),
                          true_f, true_t)
 
 
@@ -132,8 +132,8 @@ class CaseResult:
         """{bone: (P, 3)}: where the reconstruction puts the target points (world frame)."""
         if self.targets is None:
             return {}
-        return {"femur": self.reconstruction.locate("femur", self.targets.femur),
-                "tibia": self.reconstruction.locate("tibia", self.targets.tibia)}
+        return {"femur": self.reconstruction.bone_points("femur", self.targets.femur),
+                "tibia": self.reconstruction.bone_points("tibia", self.targets.tibia)}
 
 
 def run_standard_case(mech: Mechanism, flexion_deg: float = 90.0, camera: Camera | None = None,
@@ -189,7 +189,7 @@ def run_method(method: str, truth: Mechanism, prior: Mechanism, flexion_deg: flo
     else:
         pts, truth_tf = points, truth.solve(math.radians(flexion_deg))[0]
     recon = prior_method(method, model, prior, pts, max_steps=max_steps)
-    surfaces = {name: recon.locate(name, m.vertices)
+    surfaces = {name: recon.bone_points(name, m.vertices)
                 for name, m in (("femur", model.femur_surface), ("tibia", model.tibia_surface))}
     return MethodResult(method, float(flexion_deg), recon, evaluate(model, prior, recon, truth_tf), surfaces)
 

@@ -103,12 +103,13 @@ def camera_target_errors(anatomy: KneeAnatomy, prior: Mechanism, recon, T_cam_wo
     """The target point errors (ACL/PCL footprints from the prior's attachments, the epiphyses) of a
     reconstruction in a camera's frame: ``T_cam_world`` takes the reconstruction's world to the camera;
     ``T_cam_femur``, ``T_cam_tibia`` (4, 4) take the true bones' rest model coordinates (the femur frame,
-    the tibia at its scan) to the camera."""
+    the tibia at its scan) to the camera. The estimated points are carried by each bone's rigid pose, as
+    ``knee fem`` reports it (:meth:`knee.models.fem.methods.Reconstruction.bone_points`)."""
     fa = np.vstack([prior.params.link(n).femur for n in ("acl", "pcl")])
     ta = transform_points(anatomy.tibia_pose, np.vstack([prior.params.link(n).tibia for n in ("acl", "pcl")]))
     tg = target_points(anatomy.femur.vertices, anatomy.tibia.vertices, fa, ta, anatomy.joint_y, anatomy.joint_y)
-    return target_errors(tg, transform_points(T_cam_world, recon.locate("femur", tg.femur)),
-                         transform_points(T_cam_world, recon.locate("tibia", tg.tibia)),
+    return target_errors(tg, transform_points(T_cam_world, recon.bone_points("femur", tg.femur)),
+                         transform_points(T_cam_world, recon.bone_points("tibia", tg.tibia)),
                          transform_points(T_cam_femur, tg.femur), transform_points(T_cam_tibia, tg.tibia))
 
 
