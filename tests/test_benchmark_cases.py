@@ -352,3 +352,30 @@ def test_measured_poses_keep_the_real_knees_bones_apart(shared_data):
     for T, Tc in zip(poses, carried):
         assert bone_clearance(anatomy, T) == pytest.approx(c0, abs=0.02)
         np.testing.assert_allclose(pose_to_joint(T)[:3], pose_to_joint(Tc)[:3], atol=1e-12)  # the rotations kept
+
+
+def test_bone_clearance_takes_a_bone_of_overlapping_shells_as_their_union():
+    """A femur made of two overlapping closed shells (a bone and a cartilage cap over its end) above a tibia
+    block: the clearance is the gap to the nearer shell (a closed form), where ray parity inside both
+    shells would have counted the overlap as outside."""
+    from types import SimpleNamespace
+
+    import trimesh
+
+    from knee.app.experiments.case_set import bone_clearance
+
+    bone = trimesh.creation.box(extents=(40.0, 100.0, 40.0)).apply_translation([0.0, 50.0, 0.0])  # y 0..100
+    cap = trimesh.creation.box(extents=(44.0, 10.0, 44.0)).apply_translation([0.0, 3.0, 0.0])  # y -2..8
+    femur = trimesh.util.concatenate([bone, cap])
+    tibia = trimesh.creation.box(extents=(50.0, 40.0, 50.0)).apply_translation([0.0, -25.0, 0.0])  # y -45..-5
+    anatomy = SimpleNamespace(femur=femur, tibia=tibia, tibia_pose=np.eye(4))
+    assert bone_clearance(anatomy, np.eye(4)) == pytest.approx(3.0, abs=1e-3)
+    up = np.eye(4)
+    up[1, 3] = 5.0  # the tibia's top at y 0: 2 mm into the cap
+    assert bone_clearance(anatomy, up) == pytest.approx(-2.0, abs=1e-3)
+    # a peg of the tibia whose top corners (+-5, 3, +-5) lie inside both shells: 5 mm inside the cap (its
+    # bottom at -2, its top at 8), 3 mm inside the bone: the least is -5; by parity over the two shells
+    # together (two surfaces crossed) the corners would be outside
+    peg = SimpleNamespace(femur=femur, tibia=trimesh.creation.box(extents=(10.0, 40.0, 10.0)).apply_translation(
+        [0.0, -17.0, 0.0]), tibia_pose=np.eye(4))
+    assert bone_clearance(peg, np.eye(4)) == pytest.approx(-5.0, abs=1e-3)

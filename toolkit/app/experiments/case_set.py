@@ -134,12 +134,18 @@ def transferred(q, start, scan_tf) -> np.ndarray:
 def bone_clearance(anatomy, T_tibia) -> float:
     """The least signed distance (mm) between the femur's and the tibia's surfaces with the tibia at
     ``T_tibia`` (4, 4; its frame in the femur frame): the smallest of each bone's vertices' signed distances
-    to the other bone (negative: the bones overlap)."""
+    to the other bone (negative: the bones overlap). A bone made of several closed shells (a cartilage shell
+    over the condyles, say) is their union: a point's signed distance is its least over the shells (the
+    parity inside two overlapping shells would call it outside)."""
     move = np.asarray(T_tibia, float) @ invert_poses(anatomy.tibia_pose)
-    qf, qt = SurfaceQuery.of(anatomy.femur), SurfaceQuery.of(anatomy.tibia)
+
+    def signed(mesh, points):
+        shells = mesh.split(only_watertight=True) or [mesh]
+        return np.min([SurfaceQuery.of(m).signed_distance(points) for m in shells], axis=0)
+
     tib = transform_points(move, np.asarray(anatomy.tibia.vertices, float))
     fem = transform_points(invert_poses(move), np.asarray(anatomy.femur.vertices, float))
-    return float(min(qf.signed_distance(tib).min(), qt.signed_distance(fem).min()))
+    return float(min(signed(anatomy.femur, tib).min(), signed(anatomy.tibia, fem).min()))
 
 
 def in_contact(anatomy, T_tibia, clearance: float, reach_mm: float = 30.0) -> np.ndarray:
