@@ -463,3 +463,40 @@ def test_bone_points_follow_the_bones_rigid_pose_where_the_grid_mixes_the_two_bo
         assert np.linalg.norm(r.locate(bone, pts) - want, axis=1).max() > 1.0
     rigid = fm.Reconstruction("kinematics", 60.0, 0, 0.0, True, np.eye(4), rigid={"femur": np.eye(4), "tibia": T_tibia})
     np.testing.assert_allclose(rigid.bone_points("tibia", pts), rigid.locate("tibia", pts))
+
+
+def test_the_posed_skin_places_the_femur_but_leaves_its_sagittal_tilt_to_the_thigh(volunteer):
+    """The seen side of the FEM-posed skin at 60 deg, turned 2 deg about the medio-lateral axis (z) and 1 deg
+    about the thigh's axis (y) about the knee's centre, and moved 3 mm: the registration onto the posed skin
+    takes back the turn about y and the move, and leaves the sagittal tilt as the cloud came (the thigh's);
+    with every rotation kept (``rotations=(1, 1, 1)``) it takes back the tilt too. Either way the knee's
+    centre lands where the full match puts it."""
+    import math
+
+    import trimesh
+    from scipy.spatial.transform import Rotation
+
+    from knee.foundations.conventions import transform_points
+    from knee.models.fem.mapping import TrilinearMapping
+    from knee.models.fem.methods import _rotation_share, initialise_from_prior, register_to_posed_skin
+
+    model = build_association_model(volunteer)
+    initialise_from_prior(model, volunteer, math.radians(60.0))
+    v = TrilinearMapping(model.grid, model.skin_vertices).apply(model.solver.x)
+    skin = trimesh.Trimesh(v, model.skin_faces, process=False)
+    view = np.array([1.0, 0.0, 1.0]) / math.sqrt(2.0)
+    pts, face = trimesh.sample.sample_surface(skin, 8000, seed=1)
+    seen = pts[skin.face_normals[face] @ view > 0.2]
+    c = np.array([0.0, model.joint_y, 0.0])
+    T_off = np.eye(4)
+    T_off[:3, :3] = Rotation.from_rotvec(np.radians([0.0, 1.0, 2.0])).as_matrix()
+    T_off[:3, 3] = c - T_off[:3, :3] @ c + np.array([1.0, 3.0, -1.0]) * 3.0 / math.sqrt(11.0)
+    moved = transform_points(T_off, seen)
+    T_all, _ = register_to_posed_skin(model, moved, rotations=(1.0, 1.0, 1.0))
+    T, _ = register_to_posed_skin(model, moved)
+    left = Rotation.from_matrix((T @ T_off)[:3, :3]).as_rotvec()  # what remains of the offset's turn
+    assert abs(math.degrees(left[2]) - 2.0) < 0.3 and abs(math.degrees(left[1])) < 0.3
+    assert np.degrees(np.abs(Rotation.from_matrix((T_all @ T_off)[:3, :3]).as_rotvec())).max() < 0.3
+    np.testing.assert_allclose(transform_points(T, c[None]), transform_points(T_all, c[None]), atol=1e-9)
+    np.testing.assert_allclose(transform_points(T_all @ T_off, c[None]), c[None], atol=0.5)
+    np.testing.assert_array_equal(_rotation_share(T_all, c, (1.0, 1.0, 1.0)), T_all)
