@@ -15,8 +15,7 @@ sees a truth; :mod:`knee.models.evaluation` measures a reconstruction against on
 * ``"init"`` (ii), ``"links"`` (iii), ``"kinematics"`` (iv), :func:`prior_method`: the mechanism as the
   kinematic prior. The flexion is estimated from the cloud (:func:`knee.models.prior.estimate_flexion`),
   the tibia's pose there is corrected from the shank's depth points as far as they show it
-  (:func:`knee.models.prior.correct_tibia`: a MAP estimate weighed by the prior's accuracy, the rotation
-  about the shank's axis left at the prior's). (iv) stops there: the bones posed by the mechanism. (ii)
+  (:func:`knee.models.prior.correct_tibia`: a MAP estimate weighed by the prior's accuracy). (iv) stops there: the bones posed by the mechanism. (ii)
   moves femur and tibia along the mechanism's path to that pose with the grid nodes of their cells
   prescribed (Dirichlet conditions, 4 increments, the correction blended in along them), makes that
   configuration the stress-free reference (:func:`make_reference`: the crushed cells behind the knee
@@ -928,7 +927,7 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
         pts_model, fitness = transform_points(invert_poses(T_world), pts), est.inliers
     else:
         raise KneeInputError(f"femur_from must be 'thigh' or 'knee', got {femur_from!r}")
-    # the tibia off the prior's path as far as the shank's points show (its axial rotation stays the prior's)
+    # the tibia off the prior's path as far as the shank's points show
     corr = correct_tibia(est.skin, pts_model, est.flexion)
     s = model.solver
     with quasi_static(s):

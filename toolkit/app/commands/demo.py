@@ -101,7 +101,7 @@ def _sweep_and_report(args, out_dir: Path, shown: Path, fem) -> None:
               f"{r.epiphysis_mm:7.2f} mm {r.steps:6d} {r.wall_seconds:9.1f}")
         if math.isfinite(r.tibia_correction_deg):
             print(f"  the tibia's pose corrected from the shank's depth points: {r.tibia_correction_deg:.1f} deg, "
-                  f"{r.tibia_correction_mm:.1f} mm off the prior's path (its axial rotation kept)")
+                  f"{r.tibia_correction_mm:.1f} mm off the prior's path")
         if r.notes:
             print(f"  note: {r.notes}")
     print(f"comparison: {shown / 'compare.md'}, {shown / 'compare.png'}")
