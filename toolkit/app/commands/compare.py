@@ -99,8 +99,8 @@ def run(args) -> int:
         print(line)
     print("the prior's own tibia error (best-matching flexion, femur placed exactly), footprints mm: " +
           ", ".join(f"{r.flexion_deg:g} deg {r.tibia_footprints_mm:.2f}" for r in floor))
-    print("of which the axial rotation alone (the skin cannot show it; (ii) and (iii) correct the rest from the "
-          "shank's points), footprints mm: " +
+    print("of which the axial rotation alone (the phantom's round shank cannot show it; (ii) and (iii) correct the "
+          "rest from the shank's points, and that too where the shank is not round), footprints mm: " +
           ", ".join(f"{r.flexion_deg:g} deg {r.tibia_footprints_axial_mm:.2f} ({r.axial_rotation_deg:+.1f} deg)"
                     for r in floor))
     notes = sorted({r.notes for r in rows if r.notes} | {f"failed: {r.failed}" for r in rows if r.failed})

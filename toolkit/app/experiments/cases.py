@@ -214,8 +214,8 @@ def prior_floor(model: AssociationModel, truth: Mechanism, prior: Mechanism, fle
     points move the tibia off the prior's path.
 
     The remaining pose error is split into the rotation about the tibia's long axis (its y axis: the axial
-    rotation, which the skin around the shank, a surface of revolution about that axis, cannot show) and
-    the rest (which the skin can show); ``tibia_footprints_axial_mm`` is the footprint error that the axial
+    rotation, which the phantom's skin around the shank, a surface of revolution about that axis, cannot
+    show) and the rest (which the skin can show); ``tibia_footprints_axial_mm`` is the footprint error that the axial
     part alone leaves, i.e. what even a perfect use of the depth points would be left with."""
     tg = model_targets(model, prior)
     local = transform_points(invert_poses(model.tibia_pose), tg.tibia)
