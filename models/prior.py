@@ -472,6 +472,8 @@ def effective_point_sd(width_mm: float, point_sd_mm: float = POINT_SD_MM,
     of 1-2 mm outweigh the prior's 2 mm and slide the tibia 10-15 mm along its own axis, into the femur
     (measured on the honest benchmark's Visible Human)."""
     return float(point_sd_mm * math.sqrt(math.pi) * correlation_widths * width_mm / VOXEL_MM)
+
+
 #: Fewest shank points to attempt the correction.
 MIN_CORRECTION_POINTS = 200
 #: The band (mm) around the prior's shank skin whose points the tibia's correction starts from, before it
@@ -532,7 +534,7 @@ def small_pose(xi) -> np.ndarray:
 def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float = TIBIA_PRIOR_MM, sigma_deg: float = TIBIA_PRIOR_DEG,
                   point_sd_mm: float | None = None, band_mm: float = 8.0, iterations: int = 20,
                   wide_band_mm: float | None = WIDE_BAND_MM, wide_iterations: int = 5,
-                  free=(0, 1, 2, 3, 4, 5), sigma_axial_deg: float | None = None) -> TibiaCorrection:
+                  sigma_axial_deg: float | None = None) -> TibiaCorrection:
     """Move the tibia off the prior's path as far as the shank's depth points show, and no further.
 
     The mechanism at ``alpha`` places the tibia (relative to the femur) only as well as its parameters
@@ -553,8 +555,7 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
     knee or the patella; in the first ``wide_iterations`` within ``wide_band_mm`` (:data:`WIDE_BAND_MM`;
     None: the narrow band throughout), so that a shank further off the prior's path than the narrow band
     is drawn in before the band narrows. With fewer than :data:`MIN_CORRECTION_POINTS` such points the
-    prior's pose is kept (stated in ``note``). ``free``: the components of ``xi`` estimated (rotation about
-    x, y, z, translation along x, y, z; by default all), the others held at the prior's."""
+    prior's pose is kept (stated in ``note``)."""
     if point_sd_mm is None:
         point_sd_mm = effective_point_sd(skin.width)
     posed = skin.at(alpha)
@@ -563,10 +564,9 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
     pts = voxel_downsample(np.asarray(points_model, float), VOXEL_MM)
     # the other parts stay where the prior has them: they only decide which points belong to the shank
     others = np.delete(posed.part_distances(pts), SHANK, axis=0).min(axis=0)
-    free = list(free)
     axial_deg = sigma_deg if sigma_axial_deg is None else sigma_axial_deg
     prior_w = np.array([math.radians(sigma_deg) ** -2, math.radians(axial_deg) ** -2, math.radians(sigma_deg) ** -2]
-                       + [sigma_mm ** -2] * 3)[free]
+                       + [sigma_mm ** -2] * 3)
     xi = np.zeros(6)
     D = np.eye(4)
     rms = []
@@ -586,11 +586,10 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
         # a change dxi of the rotation vector turns the tibia by dw = J_r(xi) dxi in its current frame (the
         # rotation's right Jacobian) and one of the translation moves it by R^T dt there: a point, in the
         # tibia's current frame, moves by -(dw x p) - R^T dt
-        J = np.hstack([-np.cross(p, nrm) @ _right_jacobian(xi[:3]), -nrm @ D[:3, :3].T])[:, free]
+        J = np.hstack([-np.cross(p, nrm) @ _right_jacobian(xi[:3]), -nrm @ D[:3, :3].T])
         H = J.T @ J / point_sd_mm ** 2 + np.diag(prior_w)
-        g = J.T @ r / point_sd_mm ** 2 + prior_w * xi[free]
-        dxi = np.zeros(6)
-        dxi[free] = -np.linalg.solve(H, g)
+        g = J.T @ r / point_sd_mm ** 2 + prior_w * xi
+        dxi = -np.linalg.solve(H, g)
         xi = xi + dxi
         D = small_pose(xi)
         if np.abs(dxi).max() < 1e-5 and not wide:
@@ -603,4 +602,3 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
     c, nrm = shank.closest(local)
     after = float(np.sqrt(np.mean(np.einsum("ij,ij->i", local - c, nrm) ** 2)))
     return TibiaCorrection(T_prior, xi, n, rms[0], after)
-

@@ -171,7 +171,7 @@ def test_the_tibia_correction_recovers_what_the_shank_shows(volunteer):
     assert c.rms_after < 0.5 < c.rms_before
     # an added axial rotation moves no point of the capsule (a surface of revolution about that axis): the
     # points carry nothing about it, the prior's zero stays (to within 0.3 of the 5.7 deg turned: the
-    # Jacobian is the one at the prior's pose) and the rest of the correction is the same
+    # capsule's facets show a little of the turn) and the rest of the correction is the same
     twisted = _shank_points(volunteer, ph, alpha, small_pose(xi) @ small_pose(np.array([0, 0.1, 0, 0, 0, 0])))
     c2 = correct_tibia(SkinModel(volunteer, ph), twisted, alpha, sigma_mm=100.0, sigma_deg=90.0, sigma_axial_deg=3.0)
     assert abs(c2.rotation_deg[1]) < 0.3
@@ -221,6 +221,23 @@ def test_the_tibia_correction_finds_the_axial_rotation_a_non_round_shank_shows(v
     assert abs(held.rotation_deg[1]) < 0.05
     # with the axial rotation held, the points cannot be fitted as well
     assert held.rms_after > 3 * c.rms_after
+
+
+def test_the_rotation_vectors_right_jacobian_against_finite_differences():
+    """R(w + dw) = R(w) exp(J_r(w) dw) to first order: the Jacobian the tibia's correction takes where its
+    rotation is, checked column by column against central differences, at a large and a tiny rotation."""
+    from scipy.spatial.transform import Rotation
+
+    from knee.models.prior import _right_jacobian
+
+    h = 1e-6
+    for w in (np.array([0.3, -0.5, 0.2]), np.array([1e-10, 0.0, -2e-10])):
+        R = Rotation.from_rotvec(w)
+        fd = np.column_stack([(R.inv() * Rotation.from_rotvec(w + h * e)).as_rotvec() / (2 * h)
+                              - (R.inv() * Rotation.from_rotvec(w - h * e)).as_rotvec() / (2 * h)
+                              for e in np.eye(3)])
+        np.testing.assert_allclose(_right_jacobian(w), fd, atol=1e-7)
+    assert np.abs(_right_jacobian(np.array([0.3, -0.5, 0.2])) - np.eye(3)).max() > 0.1  # not the identity there
 
 
 def test_the_tibia_correction_draws_in_a_shank_beyond_its_narrow_band(volunteer):

@@ -15,8 +15,8 @@ sees a truth; :mod:`knee.models.evaluation` measures a reconstruction against on
 * ``"init"`` (ii), ``"links"`` (iii), ``"kinematics"`` (iv), :func:`prior_method`: the mechanism as the
   kinematic prior. The flexion is estimated from the cloud (:func:`knee.models.prior.estimate_flexion`),
   the tibia's pose there is corrected from the shank's depth points as far as they show it
-  (:func:`knee.models.prior.correct_tibia`: a MAP estimate weighed by the prior's accuracy). (iv) stops there: the bones posed by the mechanism. (ii)
-  moves femur and tibia along the mechanism's path to that pose with the grid nodes of their cells
+  (:func:`knee.models.prior.correct_tibia`: a MAP estimate weighed by the prior's accuracy). (iv) stops
+  there: the bones posed by the mechanism. (ii) moves femur and tibia along the mechanism's path to that pose with the grid nodes of their cells
   prescribed (Dirichlet conditions, 4 increments, the correction blended in along them), makes that
   configuration the stress-free reference (:func:`make_reference`: the crushed cells behind the knee
   dropped, grid nodes tied to a bone only weakly held, the other nodes left without a soft cell tethered

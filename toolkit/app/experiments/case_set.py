@@ -131,28 +131,38 @@ def transferred(q, start, scan_tf) -> np.ndarray:
     return q
 
 
-def bone_clearance(anatomy, T_tibia) -> float:
+def bone_queries(anatomy) -> tuple[list, list]:
+    """The femur's and the tibia's closed shells as signed-distance queries (for :func:`bone_clearance`;
+    built once for the many poses a slide along the tibia's axis tries)."""
+    return tuple([SurfaceQuery.of(m) for m in (mesh.split(only_watertight=True) or [mesh])]
+                 for mesh in (anatomy.femur, anatomy.tibia))
+
+
+def bone_clearance(anatomy, T_tibia, queries=None) -> float:
     """The least signed distance (mm) between the femur's and the tibia's surfaces with the tibia at
     ``T_tibia`` (4, 4; its frame in the femur frame): the smallest of each bone's vertices' signed distances
     to the other bone (negative: the bones overlap). A bone made of several closed shells (a cartilage shell
     over the condyles, say) is their union: a point's signed distance is its least over the shells (the
-    parity inside two overlapping shells would call it outside)."""
+    parity inside two overlapping shells would call it outside). ``queries``: :func:`bone_queries` of the
+    anatomy, when already built."""
+    femur_q, tibia_q = bone_queries(anatomy) if queries is None else queries
     move = np.asarray(T_tibia, float) @ invert_poses(anatomy.tibia_pose)
 
-    def signed(mesh, points):
-        shells = mesh.split(only_watertight=True) or [mesh]
-        return np.min([SurfaceQuery.of(m).signed_distance(points) for m in shells], axis=0)
+    def signed(shells, points):
+        return np.min([q.signed_distance(points) for q in shells], axis=0)
 
     tib = transform_points(move, np.asarray(anatomy.tibia.vertices, float))
     fem = transform_points(invert_poses(move), np.asarray(anatomy.femur.vertices, float))
-    return float(min(signed(anatomy.femur, tib).min(), signed(anatomy.tibia, fem).min()))
+    return float(min(signed(femur_q, tib).min(), signed(tibia_q, fem).min()))
 
 
-def in_contact(anatomy, T_tibia, clearance: float, reach_mm: float = 30.0) -> np.ndarray:
+def in_contact(anatomy, T_tibia, clearance: float, reach_mm: float = 30.0, queries=None) -> np.ndarray:
     """``T_tibia`` (4, 4; the tibia's frame in the femur frame) slid along the tibia's own long axis (its y)
     until the bones are ``clearance`` apart (:func:`bone_clearance`), within 0.01 mm: along that axis the
-    joint's contact, not the motion carried from another knee, decides where the tibia is."""
+    joint's contact, not the motion carried from another knee, decides where the tibia is. ``queries``:
+    :func:`bone_queries` of the anatomy, when already built."""
     T = np.asarray(T_tibia, float)
+    queries = bone_queries(anatomy) if queries is None else queries
 
     def slid(s):
         out = T.copy()
@@ -160,7 +170,7 @@ def in_contact(anatomy, T_tibia, clearance: float, reach_mm: float = 30.0) -> np
         return out
 
     def f(s):
-        return bone_clearance(anatomy, slid(s)) - clearance
+        return bone_clearance(anatomy, slid(s), queries) - clearance
 
     lo, hi = -reach_mm, reach_mm  # sliding proximally (s > 0) brings the bones together
     if f(lo) < 0.0 or f(hi) > 0.0:
@@ -177,8 +187,10 @@ def measured_poses(data, anatomy, flexions_deg) -> np.ndarray:
     45 deg (the two knees' frames put their origins differently about the condyles), a pose no knee takes
     and no method that keeps the joint's contact can follow."""
     q, start = measured_motion(data, flexions_deg)
-    clearance = bone_clearance(anatomy, anatomy.tibia_pose)
-    return np.stack([in_contact(anatomy, T, clearance) for T in joint_to_pose(transferred(q, start, anatomy.scan_tf))])
+    queries = bone_queries(anatomy)
+    clearance = bone_clearance(anatomy, anatomy.tibia_pose, queries)
+    return np.stack([in_contact(anatomy, T, clearance, queries=queries)
+                     for T in joint_to_pose(transferred(q, start, anatomy.scan_tf))])
 
 
 @dataclass
