@@ -466,11 +466,12 @@ def test_bone_points_follow_the_bones_rigid_pose_where_the_grid_mixes_the_two_bo
 
 
 def test_the_posed_skin_places_the_femur_but_leaves_its_sagittal_tilt_to_the_thigh(volunteer):
-    """The seen side of the FEM-posed skin at 60 deg, turned 2 deg about the medio-lateral axis (z) and 1 deg
-    about the thigh's axis (y) about the knee's centre, and moved 3 mm: the registration onto the posed skin
-    takes back the turn about y and the move, and leaves the sagittal tilt as the cloud came (the thigh's);
-    with every rotation kept (``rotations=(1, 1, 1)``) it takes back the tilt too. Either way the knee's
-    centre lands where the full match puts it."""
+    """The seen side of the FEM-posed skin at 60 deg, turned 1 deg about the thigh's axis (y) about the
+    knee's centre and moved 3 mm: the registration onto the posed skin takes both back. Turned 2 deg about
+    the medio-lateral axis (z) as well: the tilt is held in the fit (it stays as the cloud came, the
+    thigh's), the rest is the best fit with it held (the held fit itself is tested against an independent
+    solve in test_fem_depth); with every rotation free (``rotations=(True,) * 3``)
+    the whole offset comes back."""
     import math
 
     import trimesh
@@ -478,7 +479,7 @@ def test_the_posed_skin_places_the_femur_but_leaves_its_sagittal_tilt_to_the_thi
 
     from knee.foundations.conventions import transform_points
     from knee.models.fem.mapping import TrilinearMapping
-    from knee.models.fem.methods import _rotation_share, initialise_from_prior, register_to_posed_skin
+    from knee.models.fem.methods import initialise_from_prior, register_to_posed_skin
 
     model = build_association_model(volunteer)
     initialise_from_prior(model, volunteer, math.radians(60.0))
@@ -488,15 +489,23 @@ def test_the_posed_skin_places_the_femur_but_leaves_its_sagittal_tilt_to_the_thi
     pts, face = trimesh.sample.sample_surface(skin, 8000, seed=1)
     seen = pts[skin.face_normals[face] @ view > 0.2]
     c = np.array([0.0, model.joint_y, 0.0])
-    T_off = np.eye(4)
-    T_off[:3, :3] = Rotation.from_rotvec(np.radians([0.0, 1.0, 2.0])).as_matrix()
-    T_off[:3, 3] = c - T_off[:3, :3] @ c + np.array([1.0, 3.0, -1.0]) * 3.0 / math.sqrt(11.0)
+
+    def offset(rotvec_deg):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+        T[:3, 3] = c - T[:3, :3] @ c + np.array([1.0, 3.0, -1.0]) * 3.0 / math.sqrt(11.0)
+        return T
+
+    T_off = offset([0.0, 1.0, 0.0])
+    T, _ = register_to_posed_skin(model, transform_points(T_off, seen))
+    assert np.degrees(np.abs(Rotation.from_matrix((T @ T_off)[:3, :3]).as_rotvec())).max() < 0.3
+    np.testing.assert_allclose(transform_points(T @ T_off, c[None]), c[None], atol=0.5)
+    T_off = offset([0.0, 1.0, 2.0])
     moved = transform_points(T_off, seen)
-    T_all, _ = register_to_posed_skin(model, moved, rotations=(1.0, 1.0, 1.0))
     T, _ = register_to_posed_skin(model, moved)
+    assert abs(math.degrees(Rotation.from_matrix(T[:3, :3]).as_rotvec()[2])) < 0.01  # held
     left = Rotation.from_matrix((T @ T_off)[:3, :3]).as_rotvec()  # what remains of the offset's turn
-    assert abs(math.degrees(left[2]) - 2.0) < 0.3 and abs(math.degrees(left[1])) < 0.3
+    assert abs(math.degrees(left[2]) - 2.0) < 0.05  # the rest fits best with the tilt held, not the truth
+    T_all, _ = register_to_posed_skin(model, moved, rotations=(True, True, True))
     assert np.degrees(np.abs(Rotation.from_matrix((T_all @ T_off)[:3, :3]).as_rotvec())).max() < 0.3
-    np.testing.assert_allclose(transform_points(T, c[None]), transform_points(T_all, c[None]), atol=1e-9)
     np.testing.assert_allclose(transform_points(T_all @ T_off, c[None]), c[None], atol=0.5)
-    np.testing.assert_array_equal(_rotation_share(T_all, c, (1.0, 1.0, 1.0)), T_all)

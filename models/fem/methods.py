@@ -63,7 +63,7 @@ from trimesh.sample import sample_surface
 from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
 from knee.foundations.errors import DivergenceError, KneeInputError
 from knee.foundations.geometry import rigid_register
-from knee.foundations.pointclouds import icp, voxel_downsample
+from knee.foundations.pointclouds import icp, icp_held, voxel_downsample
 from knee.models.fem.elements import HEX_CORNERS, hex_inverted
 from knee.models.fem.fields import DisplacementTethers, MappedSprings, affine_point_map
 from knee.models.fem.forces import BoneForces, SurfaceForces
@@ -386,9 +386,9 @@ POSED_SKIN_REACHES_MM = (15.0, 8.0)
 POSED_SKIN_BELOW_WIDTHS = 0.0
 
 
-#: The rotation components (about the femur frame's x, y, z) :func:`register_to_posed_skin` keeps; the others
-#: stay the thigh's. Dropped: the tilt in the sagittal plane, about the medio-lateral axis (z).
-POSED_SKIN_ROTATIONS = (1.0, 1.0, 0.0)
+#: The rotations (about the femur frame's x, y, z) :func:`register_to_posed_skin` may change; the others are
+#: held at the thigh's in its fit. Held: the tilt in the sagittal plane, about the medio-lateral axis (z).
+POSED_SKIN_ROTATIONS = (True, True, False)
 
 
 def register_to_posed_skin(model: AssociationModel, points, reaches=POSED_SKIN_REACHES_MM, iterations: int = 30,
@@ -406,16 +406,20 @@ def register_to_posed_skin(model: AssociationModel, points, reaches=POSED_SKIN_R
     widths below the joint line (:data:`POSED_SKIN_BELOW_WIDTHS`; None: every point): the shank's points
     would tie the femur to the tibia's correction, which they have already made.
 
-    ``rotations`` (3,): the share of the match's rotation kept about the femur frame's x, y and z axes,
-    turning about the knee's centre (on the femur's axis at the joint line), so that the knee's position
-    is the match's whatever is dropped (:data:`POSED_SKIN_ROTATIONS`: all but the sagittal tilt, about the
-    medio-lateral axis z, which the thigh's registration keeps). The thigh's long near-cylinder fixes that
-    tilt well; the knee's front, where a flexed leg's tissue sways over the femur and the posed skin does
-    not (on the honest benchmark's truth, the Visible Human's skin there lies 1.3-2.0 mm inside the
-    FEM-posed skin in front and 1.2-1.3 mm outside behind, posed by the true bones), tilts the match by
-    about 1 deg, which passes into the flexion: with it kept, (iii) finds the flexion within 2 deg in 35 of
-    59 cases, without it 45, at the same footprint errors (2.35 and 2.34 mm at 0-1 mm skin mismatch;
-    BENCHMARKS.md)."""
+    ``rotations`` (3,) bool: the rotations about the femur frame's x, y and z axes (about the knee's centre,
+    on the femur's axis at the joint line) the match may change; the others are held where the thigh's
+    registration left them, in the fit itself (:func:`knee.foundations.pointclouds.icp_held`), so that
+    the translation is the best one with them held (:data:`POSED_SKIN_ROTATIONS`: all but the sagittal
+    tilt, about the medio-lateral axis z). The thigh's long near-cylinder fixes that tilt well; the knee's
+    front, where a flexed leg's tissue sways over the femur and the posed skin does not (on the honest
+    benchmark's truth, the Visible Human's skin there lies 1.3-2.0 mm inside the FEM-posed skin in front
+    and 1.2-1.3 mm outside behind, posed by the true bones), tilts a free match by about 1 deg, which
+    passes into the flexion: with it free, (iii) finds the flexion within 2 deg in 35 of 59 cases, held
+    45. Held in the fit rather than dropped after it: a free match turns about a point up the thigh and
+    so moves the knee with the tilt (on the Visible Human, posed with the true bones and seen from the
+    true pose, 1.0-1.1 deg and 1.8-2.6 mm backwards at the knee); dropping the tilt afterwards about the
+    knee's centre kept that move. Held in the fit, (iii)'s median footprint error at 0-1 mm skin mismatch
+    goes 2.29 -> 2.19 mm (the Visible Human's 2.60 -> 2.24, the phantom's 1.98 -> 2.16; BENCHMARKS.md)."""
     v = TrilinearMapping(model.grid, model.skin_vertices).apply(model.solver.x)
     mesh = trimesh.Trimesh(v, model.skin_faces, process=False)
     samples, face = sample_surface(mesh, n_samples, seed=0)
@@ -425,22 +429,11 @@ def register_to_posed_skin(model: AssociationModel, points, reaches=POSED_SKIN_R
     T, fitness = np.eye(4), 0.0
     if len(q) < MIN_THIGH_POINTS:
         return T, fitness
+    free = np.r_[np.asarray(rotations, bool), [True] * 3]
     for reach in reaches:
-        T, fitness, _ = icp(q, samples, init=T, max_distance=reach, iterations=iterations,
-                            target_normals=mesh.face_normals[face])
-    return _rotation_share(T, np.array([0.0, model.joint_y, 0.0]), rotations), float(fitness)
-
-
-def _rotation_share(T: np.ndarray, c: np.ndarray, share) -> np.ndarray:
-    """``T`` (4, 4) with its rotation vector's components scaled by ``share`` (3,), turning about ``c`` (3,):
-    the point ``c`` goes where ``T`` takes it."""
-    share = np.asarray(share, float)
-    if np.all(share == 1.0):
-        return T
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(T[:3, :3]).as_rotvec() * share).as_matrix()
-    out[:3, 3] = T[:3, :3] @ c + T[:3, 3] - out[:3, :3] @ c
-    return out
+        T, fitness = icp_held(q, samples, mesh.face_normals[face], free=free, pivot=[0.0, model.joint_y, 0.0],
+                              init=T, max_distance=reach, iterations=iterations)
+    return T, float(fitness)
 
 
 #: The paper's method (i) at its best reading on the honest benchmark's cases (``knee compare CASE_SET``):

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from knee.foundations.errors import KneeInputError
 
@@ -126,6 +128,50 @@ def icp(source_points, target_points, init=None, max_distance: float = 20.0, ite
         src, dst, max_distance, np.eye(4) if init is None else np.asarray(init, float), estimation,
         o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=iterations))
     return np.asarray(reg.transformation), float(reg.fitness), float(reg.inlier_rmse)
+
+
+def icp_held(source_points, target_points, target_normals, free=(True,) * 6, pivot=(0.0, 0.0, 0.0), init=None,
+             max_distance: float = 20.0, iterations: int = 30, tolerance: float = 1e-7) -> tuple[np.ndarray, float]:
+    """Point-to-plane ICP with some of the motion held: the rigid transform (4, 4) that brings
+    ``source_points`` onto the planes of ``target_points`` (normals ``target_normals``), of the form
+    ``pivot`` -> rotation about ``pivot`` then translation, with only the components marked in ``free``
+    (rotation about x, y, z, then translation along x, y, z; each boolean) moved from ``init``'s. Unlike
+    fitting all six and dropping some afterwards, the free ones are the best fit with the others held (a
+    rotation dropped after the fit leaves behind the translation that went with it).
+
+    Gauss-Newton on the point-to-plane residuals ``n . (T p - q)`` of each point's nearest target point
+    within ``max_distance`` mm, linearised about ``pivot``; stops after ``iterations`` or when a step
+    moves less than ``tolerance`` (rad, mm). Returns the transform (composed with ``init``) and the
+    fitness: the fraction of source points with a target point within ``max_distance``."""
+    src = np.asarray(source_points, float)
+    dst = np.asarray(target_points, float)
+    nrm = np.asarray(target_normals, float)
+    free = np.asarray(free, bool)
+    if free.shape != (6,):
+        raise KneeInputError(f"free must mark six motion components, got shape {free.shape}")
+    c = np.asarray(pivot, float)
+    T = np.eye(4) if init is None else np.array(init, float)
+    tree = cKDTree(dst)
+    fitness = 0.0
+    for _ in range(iterations):
+        p = src @ T[:3, :3].T + T[:3, 3]
+        dist, j = tree.query(p, distance_upper_bound=max_distance)
+        near = np.isfinite(dist)
+        fitness = float(near.mean()) if len(src) else 0.0
+        if near.sum() < 6 or not free.any():
+            break
+        pn, n = p[near], nrm[j[near]]
+        r = np.einsum("ij,ij->i", pn - dst[j[near]], n)
+        A = np.hstack([np.cross(pn - c, n), n])[:, free]
+        x = np.zeros(6)
+        x[free] = np.linalg.lstsq(A, -r, rcond=None)[0]
+        step = np.eye(4)
+        step[:3, :3] = Rotation.from_rotvec(x[:3]).as_matrix()
+        step[:3, 3] = x[3:] + c - step[:3, :3] @ c
+        T = step @ T
+        if np.abs(x).max() < tolerance:
+            break
+    return T, fitness
 
 
 def global_register(source_points, target_points, voxel: float = 6.0, target_normals=None, seed: int = 0,
