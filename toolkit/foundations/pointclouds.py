@@ -133,16 +133,17 @@ def icp(source_points, target_points, init=None, max_distance: float = 20.0, ite
 def icp_held(source_points, target_points, target_normals, free=(True,) * 6, pivot=(0.0, 0.0, 0.0), init=None,
              max_distance: float = 20.0, iterations: int = 30, tolerance: float = 1e-7) -> tuple[np.ndarray, float]:
     """Point-to-plane ICP with some of the motion held: the rigid transform (4, 4) that brings
-    ``source_points`` onto the planes of ``target_points`` (normals ``target_normals``), of the form
-    ``pivot`` -> rotation about ``pivot`` then translation, with only the components marked in ``free``
-    (rotation about x, y, z, then translation along x, y, z; each boolean) moved from ``init``'s. Unlike
-    fitting all six and dropping some afterwards, the free ones are the best fit with the others held (a
-    rotation dropped after the fit leaves behind the translation that went with it).
+    ``source_points`` onto the planes of ``target_points`` (normals ``target_normals``), each step a
+    rotation about ``pivot`` and a translation, of which only the components marked in ``free`` move
+    (booleans: the rotation about x, y, z, then the translation along x, y, z). Unlike fitting all six and
+    dropping some afterwards, the free ones are the best fit with the others held (a rotation dropped
+    after the fit leaves behind the translation that went with it). Steps compose, so a held rotation
+    stays as ``init`` has it to second order in the free ones (1e-4 rad for turns of a few degrees).
 
     Gauss-Newton on the point-to-plane residuals ``n . (T p - q)`` of each point's nearest target point
-    within ``max_distance`` mm, linearised about ``pivot``; stops after ``iterations`` or when a step
-    moves less than ``tolerance`` (rad, mm). Returns the transform (composed with ``init``) and the
-    fitness: the fraction of source points with a target point within ``max_distance``."""
+    within ``max_distance`` mm; stops after ``iterations`` or when a step moves less than ``tolerance``
+    (rad, mm). Returns the transform (``init`` included; identity when None) and the fitness: the fraction
+    of source points with a target point within ``max_distance``."""
     src = np.asarray(source_points, float)
     dst = np.asarray(target_points, float)
     nrm = np.asarray(target_normals, float)
