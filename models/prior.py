@@ -487,8 +487,9 @@ WIDE_BAND_MM = 20.0
 class TibiaCorrection:
     """The tibia's pose relative to the femur (model frame, (4, 4)) as the prior gives it (``T_prior``)
     and the correction found from the shank's depth points, ``xi`` (6,): a rotation vector (rad) and a
-    translation (mm) in the tibia's frame, ``T = T_prior @ small_pose(xi)``. Also the shank points used and their RMS distance to the shank before and after (mm); ``note`` says why no correction
-    was made, when none was."""
+    translation (mm) in the tibia's frame, ``T = T_prior @ small_pose(xi)``. Also the shank points used and
+    their RMS distance to the shank before and after (mm); ``note`` says why no correction was made, when
+    none was."""
 
     T_prior: np.ndarray
     xi: np.ndarray

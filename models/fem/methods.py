@@ -15,19 +15,18 @@ sees a truth; :mod:`knee.models.evaluation` measures a reconstruction against on
 * ``"init"`` (ii), ``"links"`` (iii), ``"kinematics"`` (iv), :func:`prior_method`: the mechanism as the
   kinematic prior. The flexion is estimated from the cloud (:func:`knee.models.prior.estimate_flexion`),
   the tibia's pose there is corrected from the shank's depth points as far as they show it
-  (:func:`knee.models.prior.correct_tibia`: a MAP estimate weighed by the prior's accuracy). (iv) stops
-  there: the bones posed by the mechanism. (ii) moves femur and tibia along the mechanism's path to that pose with the grid nodes of their cells
-  prescribed (Dirichlet conditions, 4 increments, the correction blended in along them), makes that
-  configuration the stress-free reference (:func:`make_reference`: the crushed cells behind the knee
-  dropped, grid nodes tied to a bone only weakly held, the other nodes left without a soft cell tethered
-  to their neighbours), places the femur again by the cloud's points above the joint line on the skin so
-  posed (:func:`register_to_posed_skin`; its tilt in the sagittal plane left the thigh's), makes the
-  tibia's correction again from the shank's points so
-  moved and moves the tibia there (``refine_on_posed_skin``, the default), then runs the surface phase
-  with the paper's two springs. The femur's first placement is the thigh's registration, except along
-  and about the thigh's axis, where the thigh's placement is weighed against the whole blended skin's by
-  their jackknife spreads (:func:`place_along_thigh`; a near-cylindrical thigh under skin mismatch slides
-  tens of mm).
+  (:func:`knee.models.prior.correct_tibia`: a MAP estimate weighed by the prior's accuracy). (iv) stops there:
+  the bones posed by the mechanism. (ii) moves femur and tibia along the mechanism's path to that pose with
+  the grid nodes of their cells prescribed (Dirichlet conditions, 4 increments, the correction blended in
+  along them), makes that configuration the stress-free reference (:func:`make_reference`: the crushed cells
+  behind the knee dropped, grid nodes tied to a bone only weakly held, the other nodes left without a soft
+  cell tethered to their neighbours), places the femur again by the cloud's points above the joint line on the
+  skin so posed (:func:`register_to_posed_skin`; its tilt in the sagittal plane left the thigh's), makes the
+  tibia's correction again from the shank's points so moved and moves the tibia there
+  (``refine_on_posed_skin``, the default), then runs the surface phase with the paper's two springs. The
+  femur's first placement is the thigh's registration, except along and about the thigh's axis, where the
+  thigh's placement is weighed against the whole blended skin's by their jackknife spreads
+  (:func:`place_along_thigh`; a near-cylindrical thigh under skin mismatch slides tens of mm).
   (iii) as (ii), with the mechanism's five links as stiff springs (1000 N/mm, the paper's collateral
   stiffness) between points rigidly attached to femur and tibia, their rest lengths the links' lengths at
   the corrected pose. Each link end is the minimum-norm affine combination of every bone node within
@@ -414,12 +413,13 @@ def register_to_posed_skin(model: AssociationModel, points, reaches=POSED_SKIN_R
     front, where a flexed leg's tissue sways over the femur and the posed skin does not (on the honest
     benchmark's truth, the Visible Human's skin there lies 1.3-2.0 mm inside the FEM-posed skin in front
     and 1.2-1.3 mm outside behind, posed by the true bones), tilts a free match by about 1 deg, which
-    passes into the flexion: with it free, (iii) finds the flexion within 2 deg in 35 of 59 cases, held
-    45. Held in the fit rather than dropped after it: a free match turns about a point up the thigh and
-    so moves the knee with the tilt (on the Visible Human, posed with the true bones and seen from the
-    true pose, 1.0-1.1 deg and 1.8-2.6 mm backwards at the knee); dropping the tilt afterwards about the
-    knee's centre kept that move. Held in the fit, (iii)'s median footprint error at 0-1 mm skin mismatch
-    goes 2.29 -> 2.19 mm (the Visible Human's 2.60 -> 2.24, the phantom's 1.98 -> 2.16; BENCHMARKS.md)."""
+    passes into the flexion: with it free, (iii) found the flexion within 2 deg in 35 of 59 cases, with it
+    dropped after the fit 45, held in the fit 43. Held in the fit rather than dropped after it: a free
+    match turns about a point up the thigh and so moves the knee with the tilt (on the Visible Human,
+    posed with the true bones and seen from the true pose, 0.5-1.2 deg and 2.1-2.9 mm at the knee, 1.8-2.9
+    mm of it backwards; held, 0.7-2.2 mm); dropping the tilt afterwards about the knee's centre kept that
+    move. Held in the fit, (iii)'s median footprint error at 0-1 mm skin mismatch goes 2.29 -> 2.19 mm (the
+    Visible Human's 2.60 -> 2.24, the phantom's 1.98 -> 2.16; 28 of 60 cases better; BENCHMARKS.md)."""
     v = TrilinearMapping(model.grid, model.skin_vertices).apply(model.solver.x)
     mesh = trimesh.Trimesh(v, model.skin_faces, process=False)
     samples, face = sample_surface(mesh, n_samples, seed=0)
