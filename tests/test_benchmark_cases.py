@@ -197,6 +197,57 @@ def test_case_set_runs_and_measures_against_its_truth(small_case_set):
     assert r.footprints_mm < 12.0 and r.registration_inliers > 0.4
 
 
+def test_stage_errors_compose_each_stages_bones_in_the_cameras_frame(small_case_set):
+    """A stage measured against its own poses has no error, and one whose femur is moved by a known
+    translation and whose tibia is turned by a known angle relative to it reports exactly those (a
+    composition of the femur's, the tibia's and the camera's frames in the wrong order would not)."""
+    from knee.app.experiments.case_set import _cases
+    from knee.app.experiments.subject_cases import camera_stage_errors
+    from knee.foundations.conventions import invert_poses
+    from knee.models.fem.methods import Reconstruction, tibia_path
+
+    (_, (anatomy, prior, _), _, _) = next(_cases(small_case_set, None))
+    T_cam_world = joint_to_pose(np.array([0.3, -0.5, 0.2, 40.0, -20.0, 500.0]))
+    Tw = joint_to_pose(np.array([-0.2, 0.1, 0.4, 5.0, 7.0, -3.0]))
+    rel = tibia_path(prior, anatomy, math.radians(40.0))[0]
+    shift = np.eye(4)
+    shift[:3, 3] = [1.0, 2.0, -3.0]
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec([0.0, 0.0, math.radians(2.0)]).as_matrix()
+    recon = Reconstruction("links", 40.0, 0, 0.0, True, Tw,
+                           stages={"posed_skin": (Tw, rel), "estimate": (Tw @ shift, rel @ turn)})
+    T_tib = anatomy.tibia_pose
+    errs = camera_stage_errors(anatomy, prior, recon, T_cam_world, T_cam_world @ Tw,
+                               T_cam_world @ Tw @ rel @ invert_poses(T_tib))
+    assert [e.stage for e in errs] == ["estimate", "posed_skin"]  # the stages' order, not the dict's
+    est, posed = errs
+    assert posed.footprints_mm < 1e-9
+    np.testing.assert_allclose(np.r_[posed.femur_rotation_deg, posed.femur_translation_mm, posed.relative_rotation_deg],
+                               0.0, atol=1e-9)
+    np.testing.assert_allclose(est.femur_translation_mm, [1.0, 2.0, -3.0], atol=1e-9)
+    np.testing.assert_allclose(est.femur_rotation_deg, 0.0, atol=1e-9)
+    np.testing.assert_allclose(est.relative_rotation_deg, [0.0, 0.0, 2.0], atol=1e-9)
+    assert abs(est.flexion_deg - posed.flexion_deg) > 1.0  # the turn about the tibia's z changes the flexion
+    assert est.femur_footprints_mm > 1.0 and est.tibia_footprints_mm > 1.0
+
+
+def test_diagnosis_ends_with_the_compared_bones(small_case_set):
+    """The stage-wise diagnosis of (iii) records its stages in order, and its last one is the bones' final
+    rigid poses as ``knee compare`` measures them (through another path: the bones' target points carried
+    by their poses)."""
+    from knee.app.experiments.case_set import diagnose_case_set
+    from knee.foundations.errors import KneeInputError
+
+    [(row, stages)] = diagnose_case_set(small_case_set, "links",
+                                        select=lambda c: c["camera"] == "paper" and c["mismatch_mm"] == 0)
+    assert not row.failed, row.failed
+    assert [s.stage for s in stages] == ["estimate", "placed", "posed_skin", "final"]
+    assert abs(stages[-1].femur_footprints_mm - row.femur_footprints_mm) < 1e-9
+    assert abs(stages[-1].tibia_footprints_mm - row.tibia_footprints_mm) < 1e-9
+    with pytest.raises(KneeInputError, match="have stages"):
+        diagnose_case_set(small_case_set, "kinematics")
+
+
 def test_seen_shank_points_counts_in_the_true_tibia_frame():
     from types import SimpleNamespace
 

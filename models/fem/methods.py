@@ -101,6 +101,10 @@ LINK_TOLERANCE = 4.0
 SETTLED_MM = 0.25
 
 
+#: The stages :attr:`Reconstruction.stages` records, in order.
+STAGES = ("estimate", "placed", "posed_skin")
+
+
 @dataclass
 class Reconstruction:
     """Where a method put the bones, and how the run went.
@@ -152,6 +156,14 @@ class Reconstruction:
     #: the FEM methods: each bone's tetrahedra's nodes at rest ``{"femur": (n, 3), "tibia": (m, 3)}``, model
     #: frame, which :meth:`bone_points` fits the bone's rigid pose to
     bone_nodes: dict | None = field(default=None, repr=False)
+    #: methods ii/iii: where each stage before the FEM's surface phase put the bones, ``{stage: (T_world_femur,
+    #: T_femur_tibia)}`` (the femur's model frame in the world, the tibia's frame in the femur's model frame;
+    #: (4, 4) each), in :data:`STAGES` order: the flexion estimate (the tibia on the prior's path); the femur
+    #: placed (by the thigh, or with ``femur_from="knee"`` by the estimate's whole skin) with the tibia's first
+    #: correction; placed again on the posed skin with the second (when that placement ran and fitted). The
+    #: bones' final poses are :meth:`bone_pose`'s. For finding where an error comes from
+    #: (``scripts/diagnose_case_set.py``).
+    stages: dict = field(default_factory=dict, repr=False)
 
     def bone_points(self, bone: str, rest_points) -> np.ndarray:
         """Where points of a bone at rest (``(P, 3)``, model frame) are, carried by the bone's rigid pose,
@@ -920,8 +932,10 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
         pts_model, fitness = transform_points(invert_poses(T_world), pts), est.inliers
     else:
         raise KneeInputError(f"femur_from must be 'thigh' or 'knee', got {femur_from!r}")
+    stages = {"estimate": (est.T_world_model, tibia_path(prior, model, est.flexion)[0])}
     # the tibia off the prior's path as far as the shank's points show
     corr = correct_tibia(est.skin, pts_model, est.flexion)
+    stages["placed"] = (T_world, corr.T)
     s = model.solver
     with quasi_static(s):
         steps = initialise_from_prior(model, prior, est.flexion, correction_xi=corr.xi)
@@ -937,6 +951,7 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
                 if again.applied:
                     corr = again
                     steps += move_tibia(model, corr.T[None])
+                stages["posed_skin"] = (T_world, corr.T)
             else:
                 notes.append(f"the cloud does not fit the posed skin (ICP fitness {fit_posed:.2f}; 0 when fewer than "
                              f"{MIN_THIGH_POINTS} points lie above the joint line): the femur stays where the thigh "
@@ -980,7 +995,7 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     flex, _ = knee_angles(model)
     return Reconstruction(method, flex, steps, time.perf_counter() - t0, converged, T_world, model.grid, s.x.copy(),
                           notes=notes, icp_fitness=fitness, estimate=dataclasses.replace(est, skin=None),
-                          tibia_correction=corr, axial=axial, bone_nodes=bone_rest_nodes(model))
+                          tibia_correction=corr, axial=axial, bone_nodes=bone_rest_nodes(model), stages=stages)
 
 
 #: Fraction of the points that must lie within 5 mm of the skin after the rough registration.

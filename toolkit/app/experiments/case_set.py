@@ -45,7 +45,7 @@ import numpy as np
 from scipy.optimize import brentq
 
 from knee.app.experiments.cases import CompareRow, reconstruction_row
-from knee.app.experiments.subject_cases import camera_target_errors, random_pose
+from knee.app.experiments.subject_cases import camera_stage_errors, camera_target_errors, random_pose
 from knee.fitting.optimize import perturb_endpoints
 from knee.fitting.pipeline import anatomical_frames
 from knee.fitting.reference_data import lenhart_subject, visible_human_subject
@@ -401,6 +401,14 @@ def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T
     measured at the target points (ACL/PCL footprints from the prior's attachments, the epiphyses). The
     paper's method runs at its best reading (:data:`knee.models.fem.methods.PAPER_AT_BEST`, which
     ``options`` may override)."""
+    row, _ = _run_case(folder, case, method, anatomy, prior, T_ct_model, **options)
+    return row
+
+
+def _run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T_ct_model, stages: bool = False,
+              **options) -> tuple[CaseRow, list]:
+    """:func:`run_case`'s row, and with ``stages`` the errors of each stage of the method
+    (:func:`knee.app.experiments.subject_cases.camera_stage_errors`; otherwise an empty list)."""
     depth = np.load(folder / case["depth"])
     fx, fy, cx, cy = case["intrinsics"]
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
@@ -412,19 +420,46 @@ def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T
     t0 = time.perf_counter()
     recon, rough = reconstruct_in_camera(model, prior, pts, invert_poses(init @ T_ct_model), method, **options)
     wall = time.perf_counter() - t0
+    T_cam_world = invert_poses(rough.T_model_world)
+    T_cam_femur = np.asarray(case["T_camera_femur_ct"]) @ T_ct_model
     T_cam_tibia = np.asarray(case["T_camera_tibia_ct"]) @ T_ct_model
-    e = camera_target_errors(anatomy, prior, recon, invert_poses(rough.T_model_world),
-                             np.asarray(case["T_camera_femur_ct"]) @ T_ct_model, T_cam_tibia)
-    return reconstruction_row(method, case["camera"], float(case["flexion_deg"]), recon, e, wall, CaseRow,
-                              case=case["id"], anatomy=case["anatomy"], family=case["family"],
-                              mismatch_mm=float(case["mismatch_mm"]), registration_inliers=rough.inliers,
-                              shank_points_true=seen_shank_points(anatomy, pts, T_cam_tibia))
+    e = camera_target_errors(anatomy, prior, recon, T_cam_world, T_cam_femur, T_cam_tibia)
+    row = reconstruction_row(method, case["camera"], float(case["flexion_deg"]), recon, e, wall, CaseRow,
+                             case=case["id"], anatomy=case["anatomy"], family=case["family"],
+                             mismatch_mm=float(case["mismatch_mm"]), registration_inliers=rough.inliers,
+                             shank_points_true=seen_shank_points(anatomy, pts, T_cam_tibia))
+    staged = camera_stage_errors(anatomy, prior, recon, T_cam_world, T_cam_femur, T_cam_tibia) if stages else []
+    return row, staged
 
 
-def run_case_set(folder, methods, progress: Callable[[int, int, str], None] | None = None,
-                 select: Callable[[dict], bool] | None = None, **options) -> list[CaseRow]:
-    """Every method on every case of a case set (``select``: a filter on the cases; ``options`` go to
-    :func:`knee.models.fem.methods.prior_method`); a run that fails is a row with its reason."""
+def diagnose_case_set(folder, method: str = "links", progress: Callable[[int, int, str], None] | None = None,
+                      select: Callable[[dict], bool] | None = None, **options) -> list[tuple[CaseRow, list]]:
+    """Method (ii) or (iii) on every case of a case set (``select``: a filter), with the errors of each of
+    its stages (:func:`knee.app.experiments.subject_cases.camera_stage_errors`): where the final error
+    comes from. A run that fails is a row with its reason and no stages."""
+    if method not in ("init", "links"):
+        raise KneeInputError(f"only methods (ii) 'init' and (iii) 'links' have stages, got {method!r}")
+    out = []
+    for c, (anatomy, prior, T_ct_model), i, n in _cases(folder, select):
+        if progress:
+            progress(i, n, f"{method} on {c['id']}")
+        try:
+            out.append(_run_case(Path(folder), c, method, anatomy, prior, T_ct_model, stages=True, **options))
+        except KneeError as e:
+            out.append((_failed_row(method, c, e), []))
+    if progress:
+        progress(len(out), len(out), "done")
+    return out
+
+
+def _failed_row(method: str, c: dict, e: Exception) -> CaseRow:
+    return CaseRow(method, c["camera"], float(c["flexion_deg"]), failed=str(e), case=c["id"], anatomy=c["anatomy"],
+                   family=c["family"], mismatch_mm=float(c["mismatch_mm"]))
+
+
+def _cases(folder, select):
+    """The selected cases of a case set, each with its anatomy's (anatomy, prior, CT-to-model frame), its
+    index and the count."""
     folder = Path(folder)
     index = read_case_set(folder)
     cases = [c for c in index["case"] if select is None or select(c)]
@@ -435,17 +470,25 @@ def run_case_set(folder, methods, progress: Callable[[int, int, str], None] | No
         prior = Mechanism(load_model(folder / a["prior"]))
         subject = load_subject(folder / a["subject"])
         setup[a["name"]] = (subject_anatomy(subject, prior.params), prior, anatomical_frames(subject)["femur"])
-    rows, total = [], len(cases) * len(methods)
     for i, c in enumerate(cases):
-        anatomy, prior, T_ct_model = setup[c["anatomy"]]
+        yield c, setup[c["anatomy"]], i, len(cases)
+
+
+def run_case_set(folder, methods, progress: Callable[[int, int, str], None] | None = None,
+                 select: Callable[[dict], bool] | None = None, **options) -> list[CaseRow]:
+    """Every method on every case of a case set (``select``: a filter on the cases; ``options`` go to
+    :func:`knee.models.fem.methods.prior_method`); a run that fails is a row with its reason."""
+    folder = Path(folder)
+    rows, total = [], None
+    for c, (anatomy, prior, T_ct_model), i, n in _cases(folder, select):
+        total = n * len(methods)
         for j, m in enumerate(methods):
             if progress:
                 progress(i * len(methods) + j, total, f"{m} on {c['id']}")
             try:
                 rows.append(run_case(folder, c, m, anatomy, prior, T_ct_model, **options))
             except KneeError as e:
-                rows.append(CaseRow(m, c["camera"], float(c["flexion_deg"]), failed=str(e), case=c["id"],
-                                    anatomy=c["anatomy"], family=c["family"], mismatch_mm=float(c["mismatch_mm"])))
+                rows.append(_failed_row(m, c, e))
     if progress:
-        progress(total, total, "done")
+        progress(len(rows), len(rows), "done")
     return rows

@@ -22,14 +22,14 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from knee.app.experiments.cases import CompareRow, reconstruction_row
-from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
+from knee.foundations.conventions import invert_poses, joint_to_pose, matrix_to_cardan, transform_points
 from knee.foundations.errors import KneeError
 from knee.foundations.pointclouds import backproject
-from knee.models.evaluation import target_errors, target_points
+from knee.models.evaluation import pose_errors, target_errors, target_points
 from knee.models.fem.anatomy import KneeAnatomy
 from knee.models.fem.depth import Camera, DepthNoise, default_camera, render_depth
 from knee.models.fem.mapping import TrilinearMapping
-from knee.models.fem.methods import METHODS, move_tibia, quasi_static, reconstruct_in_camera
+from knee.models.fem.methods import METHODS, STAGES, move_tibia, quasi_static, reconstruct_in_camera
 from knee.models.fem.scene import build_knee_model
 from knee.models.mechanism.solver import Mechanism
 
@@ -99,18 +99,73 @@ def _rough_start(T_model_cam, rng) -> np.ndarray:
     return random_pose(rng, (ROUGH_DEG, ROUGH_DEG), (ROUGH_MM, ROUGH_MM), np.zeros(3)) @ T_model_cam
 
 
+def _targets(anatomy: KneeAnatomy, prior: Mechanism):
+    """The target points of the errors: ACL/PCL footprints from the prior's attachments, the epiphyses."""
+    fa = np.vstack([prior.params.link(n).femur for n in ("acl", "pcl")])
+    ta = transform_points(anatomy.tibia_pose, np.vstack([prior.params.link(n).tibia for n in ("acl", "pcl")]))
+    return target_points(anatomy.femur.vertices, anatomy.tibia.vertices, fa, ta, anatomy.joint_y, anatomy.joint_y)
+
+
 def camera_target_errors(anatomy: KneeAnatomy, prior: Mechanism, recon, T_cam_world, T_cam_femur, T_cam_tibia):
     """The target point errors (ACL/PCL footprints from the prior's attachments, the epiphyses) of a
     reconstruction in a camera's frame: ``T_cam_world`` takes the reconstruction's world to the camera;
     ``T_cam_femur``, ``T_cam_tibia`` (4, 4) take the true bones' rest model coordinates (the femur frame,
     the tibia at its scan) to the camera. The estimated points are carried by each bone's rigid pose, as
     ``knee fem`` reports it (:meth:`knee.models.fem.methods.Reconstruction.bone_points`)."""
-    fa = np.vstack([prior.params.link(n).femur for n in ("acl", "pcl")])
-    ta = transform_points(anatomy.tibia_pose, np.vstack([prior.params.link(n).tibia for n in ("acl", "pcl")]))
-    tg = target_points(anatomy.femur.vertices, anatomy.tibia.vertices, fa, ta, anatomy.joint_y, anatomy.joint_y)
+    tg = _targets(anatomy, prior)
     return target_errors(tg, transform_points(T_cam_world, recon.bone_points("femur", tg.femur)),
                          transform_points(T_cam_world, recon.bone_points("tibia", tg.tibia)),
                          transform_points(T_cam_femur, tg.femur), transform_points(T_cam_tibia, tg.tibia))
+
+
+@dataclass
+class StageError:
+    """Where one stage of methods (ii)/(iii) put the bones, against the truth: the mean footprint errors
+    (mm; femur, tibia), the stage's flexion (deg; the Cardan flexion of the tibia relative to the femur),
+    the femur's error as a rotation vector (deg) and a translation at the knee's centre (mm; on the femur's
+    axis at the joint line), both in the true femur's frame, and the tibia's error relative to the femur as
+    a rotation vector (deg) in the true tibia's frame (its z: the flexion's error, with the sign reversed)."""
+
+    stage: str
+    femur_footprints_mm: float
+    tibia_footprints_mm: float
+    flexion_deg: float
+    femur_rotation_deg: np.ndarray
+    femur_translation_mm: np.ndarray
+    relative_rotation_deg: np.ndarray
+
+    @property
+    def footprints_mm(self) -> float:
+        return 0.5 * (self.femur_footprints_mm + self.tibia_footprints_mm)
+
+
+def camera_stage_errors(anatomy: KneeAnatomy, prior: Mechanism, recon, T_cam_world, T_cam_femur,
+                        T_cam_tibia) -> list[StageError]:
+    """The errors of each stage a reconstruction recorded (:attr:`knee.models.fem.methods.Reconstruction.
+    stages`, in :data:`knee.models.fem.methods.STAGES` order) and of its final bones ("final", their rigid
+    poses), in a camera's frame (arguments as :func:`camera_target_errors`)."""
+    tg = _targets(anatomy, prior)
+    T_tib = np.asarray(anatomy.tibia_pose, float)
+    T_cam_femur, T_cam_tibia = np.asarray(T_cam_femur, float), np.asarray(T_cam_tibia, float)
+    rel_true = invert_poses(T_cam_femur) @ T_cam_tibia @ T_tib
+    centre = np.array([0.0, anatomy.joint_y, 0.0])
+    poses = [(k, T_cam_world @ Tw, T_cam_world @ Tw @ rel @ invert_poses(T_tib))
+             for k in STAGES if k in recon.stages for Tw, rel in [recon.stages[k]]]
+    if recon.grid_x is not None and recon.bone_nodes is not None:
+        poses.append(("final", T_cam_world @ recon.bone_pose("femur", recon.bone_nodes["femur"]),
+                      T_cam_world @ recon.bone_pose("tibia", recon.bone_nodes["tibia"])))
+    out = []
+    for name, Tf, Tt in poses:
+        e = pose_errors(tg, T_cam_femur, T_cam_tibia, Tf, Tt)
+        Ef = invert_poses(T_cam_femur) @ Tf
+        rel = invert_poses(Tf) @ Tt @ T_tib
+        Er = invert_poses(rel_true) @ rel
+        out.append(StageError(name, e.femur.footprints.mean, e.tibia.footprints.mean,
+                              float(np.degrees(matrix_to_cardan(rel[:3, :3])[0])),
+                              np.degrees(Rotation.from_matrix(Ef[:3, :3]).as_rotvec()),
+                              Ef[:3, :3] @ centre + Ef[:3, 3] - centre,
+                              np.degrees(Rotation.from_matrix(Er[:3, :3]).as_rotvec())))
+    return out
 
 
 def run_subject_case(case: SubjectCase, method: str, anatomy: KneeAnatomy, prior: Mechanism, seed: int = 0):
