@@ -201,12 +201,12 @@ def test_stage_errors_compose_each_stages_bones_in_the_cameras_frame(small_case_
     """A stage measured against its own poses has no error, and one whose femur is moved by a known
     translation and whose tibia is turned by a known angle relative to it reports exactly those (a
     composition of the femur's, the tibia's and the camera's frames in the wrong order would not)."""
-    from knee.app.experiments.case_set import _cases
+    from knee.app.experiments.case_set import iter_cases
     from knee.app.experiments.subject_cases import camera_stage_errors
     from knee.foundations.conventions import invert_poses
     from knee.models.fem.methods import Reconstruction, tibia_path
 
-    (_, (anatomy, prior, _), _, _) = next(_cases(small_case_set, None))
+    (_, (anatomy, prior, _), _, _) = next(iter_cases(small_case_set))
     T_cam_world = joint_to_pose(np.array([0.3, -0.5, 0.2, 40.0, -20.0, 500.0]))
     Tw = joint_to_pose(np.array([-0.2, 0.1, 0.4, 5.0, 7.0, -3.0]))
     rel = tibia_path(prior, anatomy, math.radians(40.0))[0]

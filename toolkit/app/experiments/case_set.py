@@ -440,7 +440,7 @@ def diagnose_case_set(folder, method: str = "links", progress: Callable[[int, in
     if method not in ("init", "links"):
         raise KneeInputError(f"only methods (ii) 'init' and (iii) 'links' have stages, got {method!r}")
     out = []
-    for c, (anatomy, prior, T_ct_model), i, n in _cases(folder, select):
+    for c, (anatomy, prior, T_ct_model), i, n in iter_cases(folder, select):
         if progress:
             progress(i, n, f"{method} on {c['id']}")
         try:
@@ -457,9 +457,9 @@ def _failed_row(method: str, c: dict, e: Exception) -> CaseRow:
                    family=c["family"], mismatch_mm=float(c["mismatch_mm"]))
 
 
-def _cases(folder, select):
-    """The selected cases of a case set, each with its anatomy's (anatomy, prior, CT-to-model frame), its
-    index and the count."""
+def iter_cases(folder, select: Callable[[dict], bool] | None = None):
+    """The cases of a case set (``select``: a filter), each as (case, (its anatomy, its prior, the CT frame
+    to the model frame), its index, the count); each anatomy and prior read once."""
     folder = Path(folder)
     index = read_case_set(folder)
     cases = [c for c in index["case"] if select is None or select(c)]
@@ -479,8 +479,8 @@ def run_case_set(folder, methods, progress: Callable[[int, int, str], None] | No
     """Every method on every case of a case set (``select``: a filter on the cases; ``options`` go to
     :func:`knee.models.fem.methods.prior_method`); a run that fails is a row with its reason."""
     folder = Path(folder)
-    rows, total = [], None
-    for c, (anatomy, prior, T_ct_model), i, n in _cases(folder, select):
+    rows = []
+    for c, (anatomy, prior, T_ct_model), i, n in iter_cases(folder, select):
         total = n * len(methods)
         for j, m in enumerate(methods):
             if progress:
