@@ -733,7 +733,8 @@ def move_tibia(model: AssociationModel, poses, settle: int = 1, rebase: bool = T
 
 
 def make_reference(model: AssociationModel) -> None:
-    """Make the grid's current configuration the model's stress-free reference."""
+    """Make the grid's current configuration the model's stress-free reference: the tissue's and the bones'
+    elements, the contact's activation distances and the collateral springs' rest lengths."""
     s = model.solver
     # the configuration becomes the stress-free reference: the model has no muscles to hold the flexion,
     # so without this the tissue's bending energy would return the knee to extension; elements inverted by
