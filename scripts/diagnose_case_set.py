@@ -51,6 +51,9 @@ def main() -> int:
         print(f"[{time.perf_counter() - t0:6.0f} s] {i}/{n} {text}", file=sys.stderr, flush=True)
 
     runs = diagnose_case_set(args.cases, args.method, progress, select)
+    if not runs:
+        print(f"error: no case of {args.cases} matches --only {args.only}", file=sys.stderr)
+        return 2
     records = []
     for row, stages in runs:
         if row.failed:
