@@ -248,6 +248,31 @@ def test_diagnosis_ends_with_the_compared_bones(small_case_set):
         diagnose_case_set(small_case_set, "kinematics")
 
 
+def test_diagnosis_script_refuses_bad_input_in_one_line(small_case_set, tmp_path, capsys):
+    """scripts/diagnose_case_set.py: a folder that is not a case set and a selection that matches no case
+    each get one line naming what is wrong, exit code 2, and no CSV written."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "diagnose_case_set.py"
+    spec = importlib.util.spec_from_file_location("diagnose_case_set", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    out = tmp_path / "stages.csv"
+    for argv, says in (([str(tmp_path / "nothing")], "is not a case set"),
+                       ([str(small_case_set), "--only", "no-such-case"], "no case of")):
+        old = sys.argv
+        sys.argv = ["diagnose_case_set.py", *argv, "--csv", str(out)]
+        try:
+            assert script.main() == 2
+        finally:
+            sys.argv = old
+        err = capsys.readouterr().err.strip().splitlines()
+        assert says in err[-1] and err[-1].startswith("error:") and "Traceback" not in "".join(err)
+        assert not out.exists()
+
+
 def test_seen_shank_points_counts_in_the_true_tibia_frame():
     from types import SimpleNamespace
 

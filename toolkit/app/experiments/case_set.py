@@ -396,19 +396,14 @@ def seen_shank_points(anatomy, points_cam, T_cam_tibia) -> int:
     return int(np.count_nonzero(local[:, 1] < anatomy.joint_y - SHANK_BELOW_WIDTHS * anatomy.width))
 
 
-def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T_ct_model, **options) -> CaseRow:
+def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T_ct_model, stages: bool = False,
+             **options) -> tuple[CaseRow, list]:
     """One method on one case: the depth image and the rough pose in, the bones in the camera's frame out,
-    measured at the target points (ACL/PCL footprints from the prior's attachments, the epiphyses). The
-    paper's method runs at its best reading (:data:`knee.models.fem.methods.PAPER_AT_BEST`, which
-    ``options`` may override)."""
-    row, _ = _run_case(folder, case, method, anatomy, prior, T_ct_model, **options)
-    return row
-
-
-def _run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T_ct_model, stages: bool = False,
-              **options) -> tuple[CaseRow, list]:
-    """:func:`run_case`'s row, and with ``stages`` the errors of each stage of the method
-    (:func:`knee.app.experiments.subject_cases.camera_stage_errors`; otherwise an empty list)."""
+    measured at the target points (ACL/PCL footprints from the prior's attachments, the epiphyses); the row,
+    and with ``stages`` the errors of each stage of the method
+    (:func:`knee.app.experiments.subject_cases.camera_stage_errors`; otherwise an empty list). The paper's
+    method runs at its best reading (:data:`knee.models.fem.methods.PAPER_AT_BEST`, which ``options`` may
+    override)."""
     depth = np.load(folder / case["depth"])
     fx, fy, cx, cy = case["intrinsics"]
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
@@ -439,17 +434,7 @@ def diagnose_case_set(folder, method: str = "links", progress: Callable[[int, in
     comes from. A run that fails is a row with its reason and no stages."""
     if method not in ("init", "links"):
         raise KneeInputError(f"only methods (ii) 'init' and (iii) 'links' have stages, got {method!r}")
-    out = []
-    for c, (anatomy, prior, T_ct_model), i, n in iter_cases(folder, select):
-        if progress:
-            progress(i, n, f"{method} on {c['id']}")
-        try:
-            out.append(_run_case(Path(folder), c, method, anatomy, prior, T_ct_model, stages=True, **options))
-        except KneeError as e:
-            out.append((_failed_row(method, c, e), []))
-    if progress:
-        progress(len(out), len(out), "done")
-    return out
+    return _run_all(folder, [method], progress, select, stages=True, **options)
 
 
 def _failed_row(method: str, c: dict, e: Exception) -> CaseRow:
@@ -478,17 +463,22 @@ def run_case_set(folder, methods, progress: Callable[[int, int, str], None] | No
                  select: Callable[[dict], bool] | None = None, **options) -> list[CaseRow]:
     """Every method on every case of a case set (``select``: a filter on the cases; ``options`` go to
     :func:`knee.models.fem.methods.prior_method`); a run that fails is a row with its reason."""
+    return [row for row, _ in _run_all(folder, methods, progress, select, **options)]
+
+
+def _run_all(folder, methods, progress, select, stages: bool = False, **options) -> list[tuple[CaseRow, list]]:
+    """Every method on every selected case: :func:`run_case`'s (row, stage errors) each, a failed run a row
+    with its reason and no stages."""
     folder = Path(folder)
-    rows = []
+    out = []
     for c, (anatomy, prior, T_ct_model), i, n in iter_cases(folder, select):
-        total = n * len(methods)
         for j, m in enumerate(methods):
             if progress:
-                progress(i * len(methods) + j, total, f"{m} on {c['id']}")
+                progress(i * len(methods) + j, n * len(methods), f"{m} on {c['id']}")
             try:
-                rows.append(run_case(folder, c, m, anatomy, prior, T_ct_model, **options))
+                out.append(run_case(folder, c, m, anatomy, prior, T_ct_model, stages=stages, **options))
             except KneeError as e:
-                rows.append(_failed_row(m, c, e))
+                out.append((_failed_row(m, c, e), []))
     if progress:
-        progress(len(rows), len(rows), "done")
-    return rows
+        progress(len(out), len(out), "done")
+    return out

@@ -149,8 +149,11 @@ def camera_stage_errors(anatomy: KneeAnatomy, prior: Mechanism, recon, T_cam_wor
     T_cam_femur, T_cam_tibia = np.asarray(T_cam_femur, float), np.asarray(T_cam_tibia, float)
     rel_true = invert_poses(T_cam_femur) @ T_cam_tibia @ T_tib
     centre = np.array([0.0, anatomy.joint_y, 0.0])
-    poses = [(k, T_cam_world @ Tw, T_cam_world @ Tw @ rel @ invert_poses(T_tib))
-             for k in STAGES if k in recon.stages for Tw, rel in [recon.stages[k]]]
+    poses = []
+    for k in STAGES:
+        if k in recon.stages:
+            Tw, rel = recon.stages[k]
+            poses.append((k, T_cam_world @ Tw, T_cam_world @ Tw @ rel @ invert_poses(T_tib)))
     if recon.grid_x is not None and recon.bone_nodes is not None:
         poses.append(("final", T_cam_world @ recon.bone_pose("femur", recon.bone_nodes["femur"]),
                       T_cam_world @ recon.bone_pose("tibia", recon.bone_nodes["tibia"])))
