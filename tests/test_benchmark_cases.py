@@ -241,7 +241,7 @@ def test_diagnosis_ends_with_the_compared_bones(small_case_set):
     [(row, stages)] = diagnose_case_set(small_case_set, "links",
                                         select=lambda c: c["camera"] == "paper" and c["mismatch_mm"] == 0)
     assert not row.failed, row.failed
-    assert [s.stage for s in stages] == ["estimate", "placed", "posed_skin", "final"]
+    assert [s.stage for s in stages] == ["estimate", "placed", "posed_skin", "apart", "final"]
     assert abs(stages[-1].femur_footprints_mm - row.femur_footprints_mm) < 1e-9
     assert abs(stages[-1].tibia_footprints_mm - row.tibia_footprints_mm) < 1e-9
     with pytest.raises(KneeInputError, match="have stages"):
@@ -388,7 +388,7 @@ def test_in_contact_slides_the_tibia_along_its_axis_to_the_clearance():
     its rotation and the other two directions untouched; the clearance is the least signed distance between
     the two surfaces (a closed form: sliding a tibia held apart by c0 by s along its axis towards the femur
     leaves c0 - s where the contact is along that axis)."""
-    from knee.app.experiments.case_set import bone_clearance, in_contact
+    from knee.models.fem.anatomy import bone_clearance, in_contact
     from knee.models.fem.scene import phantom_anatomy
     from knee.models.mechanism import Mechanism
 

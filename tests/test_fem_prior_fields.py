@@ -519,3 +519,78 @@ def test_the_posed_skin_places_the_femur_but_leaves_its_sagittal_tilt_to_the_thi
     T_all, _ = register_to_posed_skin(model, moved, rotations=(True, True, True))
     assert np.degrees(np.abs(Rotation.from_matrix((T_all @ T_off)[:3, :3]).as_rotvec())).max() < 0.3
     np.testing.assert_allclose(transform_points(T_all @ T_off, c[None]), c[None], atol=0.5)
+
+
+def test_bones_that_overlap_are_slid_apart_along_the_tibias_axis_and_parted_ones_left(model):
+    """keep_bones_apart: a tibia pushed 3 mm into the femur along its own axis comes back to the scan's
+    clearance (the least signed distance between the surfaces) by a slide along that axis of about 3 mm
+    (a closed form where the contact lies along the axis); one pulled 2 mm away is left where it is, with no
+    slide (the bones may part)."""
+    from knee.models.fem.anatomy import bone_clearance
+    from knee.models.fem.methods import keep_bones_apart
+
+    T0 = model.anatomy.tibia_pose
+    c0 = bone_clearance(model.anatomy, T0)
+    pushed, pulled = T0.copy(), T0.copy()
+    pushed[:3, 3] += 3.0 * T0[:3, 1]
+    pulled[:3, 3] -= 2.0 * T0[:3, 1]
+    back, slide = keep_bones_apart(model, pushed)
+    assert bone_clearance(model.anatomy, back) == pytest.approx(c0, abs=0.02)
+    np.testing.assert_allclose(back[:3, :3], pushed[:3, :3], atol=1e-12)
+    np.testing.assert_allclose(back[:3, 3] - pushed[:3, 3], slide, atol=1e-12)
+    np.testing.assert_allclose(np.cross(slide, T0[:3, 1]), 0.0, atol=1e-9)
+    assert slide @ T0[:3, 1] == pytest.approx(-3.0, abs=0.6)
+    same, none = keep_bones_apart(model, pulled)
+    np.testing.assert_array_equal(same, pulled)
+    np.testing.assert_array_equal(none, 0.0)
+
+
+def test_an_overlap_is_split_between_the_femur_and_the_tibia_in_the_world(volunteer, monkeypatch):
+    """Where the placed bones overlap, (ii)/(iii) slide them apart before the surface phase: the femur (and
+    the cloud with it) takes apart_share of the slide in the world, the tibia the rest, and the grid's tibia
+    and the links are put where the slide leaves it. A slide of 2 mm along the tibia's axis stands in for an
+    overlap; the surface phase is skipped, so the final bones are the initialisation's."""
+    import knee.models.fem.methods as fm
+    from knee.app.experiments.cases import case_points
+    from knee.foundations.conventions import invert_poses, transform_points
+    from knee.models.fem.depth import default_camera
+
+    pts, _ = case_points(volunteer, 60.0, default_camera(), None)
+    clouds = []
+
+    def no_steps(model_, surf, max_steps, steps):
+        clouds.append(surf.depth.copy())
+        return steps, False
+
+    monkeypatch.setattr(fm, "surface_phase", no_steps)
+    tibia_pose = build_association_model(volunteer).tibia_pose
+    seen = {}
+
+    def overlap(model_, T):
+        slide = -2.0 * np.asarray(T)[:3, 1]
+        out = np.array(T, float)
+        out[:3, 3] += slide
+        seen["T"] = out
+        return out, slide
+
+    monkeypatch.setattr(fm, "keep_bones_apart", overlap)
+    runs = {share: fm.prior_method("init", build_association_model(volunteer), volunteer, pts, apart_share=share)
+            for share in (0.0, 0.5, 1.0)}
+    assert all("apart" in r.stages for r in runs.values())
+    (Tw0, rel0) = runs[0.0].stages["posed_skin"]
+    slide = seen["T"][:3, 3] - rel0[:3, 3]
+    for (share, r), cloud in zip(runs.items(), clouds):
+        Tw, rel = r.stages["apart"]
+        # the cloud the surface forces pull to moved with the femur: it is the same cloud in the world
+        np.testing.assert_allclose(transform_points(Tw, cloud), transform_points(Tw0, clouds[0]), atol=1e-6)
+        assert r.stages["posed_skin"][0] == pytest.approx(Tw0) and r.stages["posed_skin"][1] == pytest.approx(rel0)
+        np.testing.assert_allclose(rel, seen["T"], atol=1e-9)
+        # the femur moved by -share * slide in the world, the tibia by (1 - share) * slide
+        np.testing.assert_allclose(Tw[:3, 3] - Tw0[:3, 3], -share * Tw0[:3, :3] @ slide, atol=1e-6)
+        np.testing.assert_allclose((Tw @ rel)[:3, 3] - (Tw0 @ rel0)[:3, 3], (1 - share) * Tw0[:3, :3] @ slide,
+                                   atol=1e-6)
+        # the grid's tibia is where the slide left it (no surface steps: the initialisation's bones)
+        Tf, Tt = (r.bone_pose(b, r.bone_nodes[b]) for b in ("femur", "tibia"))
+        np.testing.assert_allclose(invert_poses(Tf) @ Tt @ tibia_pose, seen["T"], atol=0.05)
+    plain = fm.prior_method("init", build_association_model(volunteer), volunteer, pts, apart_share=None)
+    assert "apart" not in plain.stages

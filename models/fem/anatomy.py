@@ -15,6 +15,12 @@ millimetre constants that assume one knee:
   joint line when the scan is shorter than that (a scan of 60 mm of shaft still has a thigh band);
 - the band kept of a longer scan: 2.5 ``width`` above and below the joint line (:func:`clip_anatomy`).
 
+How close the bones are at a pose of the tibia (:func:`bone_clearance`: the least signed distance between
+the two surfaces, negative where they overlap) and a tibia slid along its own axis to a given clearance
+(:func:`in_contact`): the honest benchmark's truth keeps a measured motion's bones as close as at the scan
+with them, and the prior's methods keep the bones they place from sinking into each other
+(:func:`knee.models.fem.methods.keep_bones_apart`).
+
 Frames: the femur's anatomical frame (x anterior, y proximal, z lateral, right knee; mm) is the model's
 frame; ``tibia_pose`` (4, 4) takes tibia-frame coordinates to it at the scanned pose.
 """
@@ -26,9 +32,10 @@ from functools import cached_property
 
 import numpy as np
 import trimesh
+from scipy.optimize import brentq
 
-from knee.foundations.conventions import pose_to_joint, transform_points
-from knee.foundations.errors import KneeInputError
+from knee.foundations.conventions import invert_poses, pose_to_joint, transform_points
+from knee.foundations.errors import KneeError, KneeInputError
 from knee.foundations.geometry import end_width, epicondyles
 from knee.foundations.surfaces import SurfaceQuery, clip_to_slab, closed_surface
 
@@ -173,3 +180,51 @@ def anatomy_in_femur_frame(femur, tibia, skin, T_scan_femur, T_scan_tibia, mcl=N
     to = [m.copy().apply_transform(Tf_inv) for m in (femur, tibia, skin)]
     ins = [None if p is None else transform_points(Tf_inv, np.asarray(p, float).reshape(2, 3)) for p in (mcl, lcl)]
     return KneeAnatomy(*to, Tf_inv @ np.asarray(T_scan_tibia, float), ins[0], ins[1], name)
+
+
+def bone_queries(anatomy) -> tuple[list, list]:
+    """The femur's and the tibia's closed shells as signed-distance queries (for :func:`bone_clearance`;
+    built once for the many poses a slide along the tibia's axis tries)."""
+    return tuple([SurfaceQuery.of(m) for m in (mesh.split(only_watertight=True) or [mesh])]
+                 for mesh in (anatomy.femur, anatomy.tibia))
+
+
+def bone_clearance(anatomy, T_tibia, queries=None) -> float:
+    """The least signed distance (mm) between the femur's and the tibia's surfaces with the tibia at
+    ``T_tibia`` (4, 4; its frame in the femur frame): the smallest of each bone's vertices' signed distances
+    to the other bone (negative: the bones overlap). A bone made of several closed shells (a cartilage shell
+    over the condyles, say) is their union: a point's signed distance is its least over the shells (the
+    parity inside two overlapping shells would call it outside). ``queries``: :func:`bone_queries` of the
+    anatomy, when already built."""
+    femur_q, tibia_q = bone_queries(anatomy) if queries is None else queries
+    move = np.asarray(T_tibia, float) @ invert_poses(anatomy.tibia_pose)
+
+    def signed(shells, points):
+        return np.min([q.signed_distance(points) for q in shells], axis=0)
+
+    tib = transform_points(move, np.asarray(anatomy.tibia.vertices, float))
+    fem = transform_points(invert_poses(move), np.asarray(anatomy.femur.vertices, float))
+    return float(min(signed(femur_q, tib).min(), signed(tibia_q, fem).min()))
+
+
+def in_contact(anatomy, T_tibia, clearance: float, reach_mm: float = 30.0, queries=None) -> np.ndarray:
+    """``T_tibia`` (4, 4; the tibia's frame in the femur frame) slid along the tibia's own long axis (its y)
+    until the bones are ``clearance`` apart (:func:`bone_clearance`), within 0.01 mm: along that axis the
+    joint's contact, not the motion carried from another knee, decides where the tibia is. ``queries``:
+    :func:`bone_queries` of the anatomy, when already built."""
+    T = np.asarray(T_tibia, float)
+    queries = bone_queries(anatomy) if queries is None else queries
+
+    def slid(s):
+        out = T.copy()
+        out[:3, 3] += s * T[:3, 1]
+        return out
+
+    def f(s):
+        return bone_clearance(anatomy, slid(s), queries) - clearance
+
+    lo, hi = -reach_mm, reach_mm  # sliding proximally (s > 0) brings the bones together
+    if f(lo) < 0.0 or f(hi) > 0.0:
+        raise KneeError(f"the tibia cannot be brought to {clearance:.2f} mm from the femur within {reach_mm:.0f} mm "
+                        "along its axis")
+    return slid(brentq(f, lo, hi, xtol=0.01))

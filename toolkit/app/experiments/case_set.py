@@ -42,7 +42,6 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from scipy.optimize import brentq
 
 from knee.app.experiments.cases import CompareRow, reconstruction_row
 from knee.app.experiments.subject_cases import camera_stage_errors, camera_target_errors, random_pose
@@ -56,7 +55,7 @@ from knee.foundations.conventions import invert_poses, joint_to_pose, pose_to_jo
 from knee.foundations.errors import KneeError, KneeInputError
 from knee.foundations.files import read_text
 from knee.foundations.pointclouds import backproject, voxel_downsample
-from knee.foundations.surfaces import SurfaceQuery
+from knee.models.fem.anatomy import bone_clearance, bone_queries, in_contact
 from knee.models.fem.depth import DepthNoise, default_camera, render_depth
 from knee.models.fem.methods import PAPER_AT_BEST, reconstruct_in_camera
 from knee.models.fem.scene import build_knee_model, phantom_anatomy
@@ -129,54 +128,6 @@ def transferred(q, start, scan_tf) -> np.ndarray:
     q = np.array(q, float)
     q[:, 1:] = np.asarray(scan_tf)[1:] + (q[:, 1:] - np.asarray(start)[1:])
     return q
-
-
-def bone_queries(anatomy) -> tuple[list, list]:
-    """The femur's and the tibia's closed shells as signed-distance queries (for :func:`bone_clearance`;
-    built once for the many poses a slide along the tibia's axis tries)."""
-    return tuple([SurfaceQuery.of(m) for m in (mesh.split(only_watertight=True) or [mesh])]
-                 for mesh in (anatomy.femur, anatomy.tibia))
-
-
-def bone_clearance(anatomy, T_tibia, queries=None) -> float:
-    """The least signed distance (mm) between the femur's and the tibia's surfaces with the tibia at
-    ``T_tibia`` (4, 4; its frame in the femur frame): the smallest of each bone's vertices' signed distances
-    to the other bone (negative: the bones overlap). A bone made of several closed shells (a cartilage shell
-    over the condyles, say) is their union: a point's signed distance is its least over the shells (the
-    parity inside two overlapping shells would call it outside). ``queries``: :func:`bone_queries` of the
-    anatomy, when already built."""
-    femur_q, tibia_q = bone_queries(anatomy) if queries is None else queries
-    move = np.asarray(T_tibia, float) @ invert_poses(anatomy.tibia_pose)
-
-    def signed(shells, points):
-        return np.min([q.signed_distance(points) for q in shells], axis=0)
-
-    tib = transform_points(move, np.asarray(anatomy.tibia.vertices, float))
-    fem = transform_points(invert_poses(move), np.asarray(anatomy.femur.vertices, float))
-    return float(min(signed(femur_q, tib).min(), signed(tibia_q, fem).min()))
-
-
-def in_contact(anatomy, T_tibia, clearance: float, reach_mm: float = 30.0, queries=None) -> np.ndarray:
-    """``T_tibia`` (4, 4; the tibia's frame in the femur frame) slid along the tibia's own long axis (its y)
-    until the bones are ``clearance`` apart (:func:`bone_clearance`), within 0.01 mm: along that axis the
-    joint's contact, not the motion carried from another knee, decides where the tibia is. ``queries``:
-    :func:`bone_queries` of the anatomy, when already built."""
-    T = np.asarray(T_tibia, float)
-    queries = bone_queries(anatomy) if queries is None else queries
-
-    def slid(s):
-        out = T.copy()
-        out[:3, 3] += s * T[:3, 1]
-        return out
-
-    def f(s):
-        return bone_clearance(anatomy, slid(s), queries) - clearance
-
-    lo, hi = -reach_mm, reach_mm  # sliding proximally (s > 0) brings the bones together
-    if f(lo) < 0.0 or f(hi) > 0.0:
-        raise KneeError(f"the tibia cannot be brought to {clearance:.2f} mm from the femur within {reach_mm:.0f} mm "
-                        "along its axis")
-    return slid(brentq(f, lo, hi, xtol=0.01))
 
 
 def measured_poses(data, anatomy, flexions_deg) -> np.ndarray:
