@@ -594,3 +594,6 @@ def test_an_overlap_is_split_between_the_femur_and_the_tibia_in_the_world(volunt
         np.testing.assert_allclose(invert_poses(Tf) @ Tt @ tibia_pose, seen["T"], atol=0.05)
     plain = fm.prior_method("init", build_association_model(volunteer), volunteer, pts, apart_share=None)
     assert "apart" not in plain.stages
+    from knee.foundations.errors import KneeInputError
+    with pytest.raises(KneeInputError, match="apart_share must be between 0 and 1"):
+        fm.prior_method("init", build_association_model(volunteer), volunteer, pts, apart_share=1.5)

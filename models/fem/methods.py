@@ -932,6 +932,8 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     if method not in METHODS:
         raise KneeInputError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     _check_flexion_skin(flexion_skin)  # here, not as a failed estimate that falls back to the paper's method
+    if apart_share is not None and not 0.0 <= apart_share <= 1.0:
+        raise KneeInputError(f"apart_share must be between 0 and 1 (the femur's share of the slide), got {apart_share}")
     if method == "paper":
         return paper_method(model, points, **paper_options)
     t0 = time.perf_counter()
