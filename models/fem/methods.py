@@ -889,9 +889,9 @@ def keep_bones_apart(model: AssociationModel, T_tibia) -> tuple[np.ndarray, np.n
     knee's bones cannot sink into each other, but they may part (a deviation from the prior's path can
     open the joint), and nothing here says by how much. The femur's and the tibia's placements from the
     skin each err by 1-2 mm, and where they err towards each other the bones overlap: on the honest
-    benchmark's cases after the posed-skin stage, by up to 5 mm (the Visible Human's clearance -0.7 to -5.0
-    mm where the scan's is -0.3; the phantom's 1.6-3.5 mm against 4.0), the femur too far back at
-    45-90 deg. Raises :class:`KneeError` when no slide within 30 mm parts them (the poses are then far off
+    benchmark's cases after the posed-skin stage, by up to 5 mm (the Visible Human's clearance -0.4 to -5.0
+    mm in 25 of its 30 cases, where the scan's is -0.3; the phantom's 1.6-3.5 mm in 29 of 30, against 4.0),
+    the femur too far back at 45-90 deg. Raises :class:`KneeError` when no slide within 30 mm parts them (the poses are then far off
     anyway)."""
     anat = model.anatomy
     T = np.asarray(T_tibia, float)
