@@ -1,12 +1,12 @@
-"""Where method (iii)'s error comes from, stage by stage, on a case set (``scripts/build_case_set.py``):
-after the flexion estimate (the tibia on the prior's path), after the femur's placement by the thigh with
-the tibia's first correction, after its placement again on the skin the FEM posed with the second
-correction, and at the end of the FEM's surface phase (the bones' rigid poses, what ``knee compare``
-measures). Per stage: the median footprint error (mm; femur / tibia) at 0-1 mm and at 2 mm skin mismatch
-and over all cases, the flexions within 2 deg of the truth among the cases that see the shank, and the
-medians of the femur's error (rotation, deg; translation at the knee's centre, mm; in the true femur's
-frame: x anterior, y proximal, z the medio-lateral axis) and of the tibia's rotation relative to the
-femur (deg, the true tibia's frame; its z is the flexion's error with the sign reversed).
+"""Where method (iii)'s error comes from, stage by stage, on a case set (``scripts/build_case_set.py``): after
+the flexion estimate (the tibia on the prior's path), after the femur's placement by the thigh with the
+tibia's first correction, after its placement again on the skin the FEM posed with the second correction,
+after the bones were slid apart where they overlapped, and at the end of the FEM's surface phase (the bones'
+rigid poses, what ``knee compare`` measures). Per stage: the median footprint error (mm; femur / tibia) at 0-1
+mm and at 2 mm skin mismatch and over all cases, the flexions within 2 deg of the truth among the cases that
+see the shank, and the medians of the femur's error (rotation, deg; translation at the knee's centre, mm; in
+the true femur's frame: x anterior, y proximal, z the medio-lateral axis) and of the tibia's rotation relative
+to the femur (deg, the true tibia's frame; its z is the flexion's error with the sign reversed).
 
     .venv/bin/python scripts/diagnose_case_set.py CASE_SET [--only ID,...] [--method links|init]
         [--csv OUT.csv]
@@ -23,6 +23,7 @@ import sys
 import time
 
 import numpy as np
+
 
 def _median(values) -> float:
     v = [x for x in values if np.isfinite(x)]

@@ -597,3 +597,24 @@ def test_an_overlap_is_split_between_the_femur_and_the_tibia_in_the_world(volunt
     from knee.foundations.errors import KneeInputError
     with pytest.raises(KneeInputError, match="apart_share must be between 0 and 1"):
         fm.prior_method("init", build_association_model(volunteer), volunteer, pts, apart_share=1.5)
+
+
+def test_bones_that_cannot_be_parted_are_left_as_placed_with_a_note(volunteer, monkeypatch):
+    """When no slide within reach parts the bones (keep_bones_apart raises), the run goes on with the bones as
+    the posed-skin stage left them and says so, rather than failing."""
+    import knee.models.fem.methods as fm
+    from knee.app.experiments.cases import case_points
+    from knee.foundations.errors import KneeError
+    from knee.models.fem.depth import default_camera
+
+    pts, _ = case_points(volunteer, 60.0, default_camera(), None)
+    monkeypatch.setattr(fm, "surface_phase", lambda model_, surf, max_steps, steps: (steps, False))
+
+    def cannot(model_, T):
+        raise KneeError("the tibia cannot be brought to 4.00 mm from the femur within 30 mm along its axis")
+
+    monkeypatch.setattr(fm, "keep_bones_apart", cannot)
+    r = fm.prior_method("init", build_association_model(volunteer), volunteer, pts)
+    assert any("could not be parted" in n and "within 30 mm" in n for n in r.notes), r.notes
+    for a, b in zip(r.stages["apart"], r.stages["posed_skin"]):
+        np.testing.assert_array_equal(a, b)

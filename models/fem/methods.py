@@ -65,7 +65,7 @@ from knee.foundations.conventions import invert_poses, joint_to_pose, transform_
 from knee.foundations.errors import DivergenceError, KneeError, KneeInputError
 from knee.foundations.geometry import rigid_register
 from knee.foundations.pointclouds import icp, icp_held, voxel_downsample
-from knee.models.fem.anatomy import bone_clearance, in_contact
+from knee.models.fem.anatomy import bone_clearance, bone_queries, in_contact
 from knee.models.fem.elements import HEX_CORNERS, hex_inverted
 from knee.models.fem.fields import DisplacementTethers, MappedSprings, affine_point_map
 from knee.models.fem.forces import BoneForces, SurfaceForces
@@ -891,13 +891,15 @@ def keep_bones_apart(model: AssociationModel, T_tibia) -> tuple[np.ndarray, np.n
     skin each err by 1-2 mm, and where they err towards each other the bones overlap: on the honest
     benchmark's cases after the posed-skin stage, by up to 5 mm (the Visible Human's clearance -0.4 to -5.0
     mm in 25 of its 30 cases, where the scan's is -0.3; the phantom's 1.6-3.5 mm in 29 of 30, against 4.0),
-    the femur too far back at 45-90 deg. Raises :class:`KneeError` when no slide within 30 mm parts them (the poses are then far off
-    anyway)."""
+    the femur too far back at 45-90 deg. Raises :class:`KneeError` when no slide within 30 mm parts them
+    (the poses are then far off anyway)."""
     anat = model.anatomy
     T = np.asarray(T_tibia, float)
-    if bone_clearance(anat, T) >= (c0 := bone_clearance(anat, anat.tibia_pose)):
+    queries = bone_queries(anat)  # once, for the scan's clearance, this pose's and the slide's
+    c0 = bone_clearance(anat, anat.tibia_pose, queries)
+    if bone_clearance(anat, T, queries) >= c0:
         return T, np.zeros(3)
-    out = in_contact(anat, T, c0)
+    out = in_contact(anat, T, c0, queries=queries)
     return out, out[:3, 3] - T[:3, 3]
 
 
@@ -1011,7 +1013,7 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
                 # the femur moves by -share * slide (model frame) and the cloud with it; the tibia takes the rest
                 d = apart_share * slide
                 pts_model = pts_model + d
-                T_world = T_world @ _translation(-d)
+                T_world = T_world @ small_pose(np.r_[np.zeros(3), -d])
                 steps += move_tibia(model, T_tib[None])
             stages["apart"] = (T_world, T_tib)
         surf = SurfaceForces(model.grid, model.skin_vertices, pts_model, k=2.0)
@@ -1052,13 +1054,6 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     return Reconstruction(method, flex, steps, time.perf_counter() - t0, converged, T_world, model.grid, s.x.copy(),
                           notes=notes, icp_fitness=fitness, estimate=dataclasses.replace(est, skin=None),
                           tibia_correction=corr, axial=axial, bone_nodes=bone_rest_nodes(model), stages=stages)
-
-
-def _translation(d) -> np.ndarray:
-    """(4, 4) translation by ``d`` (3,)."""
-    T = np.eye(4)
-    T[:3, 3] = d
-    return T
 
 
 #: Fraction of the points that must lie within 5 mm of the skin after the rough registration.
