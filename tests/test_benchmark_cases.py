@@ -358,12 +358,14 @@ def test_compare_on_a_case_set_writes_its_report(small_case_set, tmp_path, capsy
     from knee.app.cli import main
 
     out = tmp_path / "out"
-    assert main(["compare", str(small_case_set), "--methods", "kinematics", "--only", "0mm-paper", "--out", str(out),
-                 "--quiet"]) == 0
+    assert main(["compare", str(small_case_set), "--methods", "kinematics,links", "--only", "paper", "--out",
+                 str(out), "--quiet"]) == 0
     md = (out / "compare.md").read_text()
     assert "## Targets" in md and "(iv) kinematics" in md and (out / "compare.png").stat().st_size > 0
     rows = (out / "compare.csv").read_text().splitlines()
-    assert len(rows) == 2 and "mismatch_mm" in rows[0]
+    assert len(rows) == 5 and "mismatch_mm" in rows[0]
+    # the 1 mm view has its 0 mm twin: the 0-1 mm target says what a perfect model reaches there
+    assert "at 1 mm, on the 1 views also rendered at 0 mm" in md and "(iii)" in md.split("views also")[1]
 
 
 def test_a_measured_motion_is_carried_over_as_its_change_from_the_start_of_its_arc():
@@ -455,3 +457,103 @@ def test_bone_clearance_takes_a_bone_of_overlapping_shells_as_their_union():
     peg = SimpleNamespace(femur=femur, tibia=trimesh.creation.box(extents=(10.0, 40.0, 10.0)).apply_translation(
         [0.0, -17.0, 0.0]), tibia_pose=np.eye(4))
     assert bone_clearance(peg, np.eye(4)) == pytest.approx(-5.0, abs=1e-3)
+
+
+def test_skin_floor_recovers_a_known_motion_of_the_leg(small_case_set):
+    """The floor's registration on a clean cloud moved rigidly by a known G (camera frame): every bone lands
+    at G times its true pose, each from its side of the knee and as one body. Inverting the registration,
+    composing it on the wrong side or carrying the tibia wrongly in the joined floor would not."""
+    from knee.app.experiments.case_set import iter_cases
+    from knee.app.experiments.skin_floor import _cloud, floor_poses
+    from knee.foundations.conventions import transform_points
+
+    (c, (anatomy, _, T_ct_model), _, _), = iter_cases(small_case_set, lambda c: c["mismatch_mm"] == 0)
+    clean = _cloud(small_case_set, c)
+    Tf = np.asarray(c["T_camera_femur_ct"]) @ T_ct_model
+    Tt = np.asarray(c["T_camera_tibia_ct"]) @ T_ct_model
+    G = np.eye(4)
+    G[:3, :3] = Rotation.from_rotvec(np.radians([1.5, -1.0, 0.8])).as_matrix()
+    G[:3, 3] = [1.2, -0.8, 1.5]
+    centre = transform_points(Tf, np.array([[0.0, anatomy.joint_y, 0.0]]))[0]
+    G[:3, 3] += centre - G[:3, :3] @ centre  # turned about the knee, within the ICP's reach
+    poses = floor_poses(transform_points(G, clean), clean, Tf, Tt, anatomy.joint_y)
+    for kind, (Tf_est, Tt_est) in poses.items():
+        for T_est, T in ((Tf_est, Tf), (Tt_est, Tt)):
+            # the residual at the knee: within the ICP's convergence (the motion is 2 deg and 2 mm; inverted,
+            # it would be off by twice that)
+            E = np.linalg.inv(G @ T) @ T_est
+            assert math.degrees(Rotation.from_matrix(E[:3, :3]).magnitude()) < 0.3, kind
+            assert np.linalg.norm(E[:3, :3] @ [0.0, anatomy.joint_y, 0.0] + E[:3, 3] - [0.0, anatomy.joint_y, 0.0]) < 0.1, kind
+
+
+def test_skin_floor_on_the_case_set_and_its_script(small_case_set, tmp_path, capsys):
+    """The floor is measured on the cases whose view was rendered at 0 mm too (here the paper's at 1 mm),
+    is nonzero (the mismatch field moves the registration) and comes out of the script as tables; a case
+    set without such twins and a CSV that is not knee compare's each get one line naming what is wrong."""
+    import importlib.util
+    import shutil
+    import sys
+    from pathlib import Path
+
+    from knee.app.experiments.case_set import build_case_set
+    from knee.app.experiments.skin_floor import skin_floor
+    from knee.foundations.errors import KneeInputError
+
+    rows = skin_floor(small_case_set)
+    assert [r.case for r in rows] == ["phantom-mechanism-40-1mm-paper"]
+    r = rows[0]
+    assert 0.05 < r.separate_mm < 6.0 and 0.05 < r.joined_mm < 6.0
+    path = Path(__file__).resolve().parents[1] / "scripts" / "skin_mismatch_floor.py"
+    spec = importlib.util.spec_from_file_location("skin_mismatch_floor", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    compare = tmp_path / "compare.csv"
+    compare.write_text("case,method,femur_footprints_mm,tibia_footprints_mm\n"
+                       "phantom-mechanism-40-1mm-paper,links,1.0,3.0\n")
+    old = sys.argv
+    sys.argv = ["skin_mismatch_floor.py", str(small_case_set), "--compare", str(compare)]
+    try:
+        assert script.main() == 0
+    finally:
+        sys.argv = old
+    out = capsys.readouterr().out
+    assert "| 1 mm | 1 | " in out and out.rstrip().endswith("| 2.00 |")  # (iii): the mean of 1 and 3 mm
+    only_1mm = build_case_set(tmp_path / "sub", seed=4, data=None, mechanism_flexions=(40.0,), mismatches=(1.0,))
+    with pytest.raises(KneeInputError, match="rendered at 0 mm"):
+        skin_floor(only_1mm)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("a,b\n1,2\n")
+    for argv, says in (([str(only_1mm)], "rendered at 0 mm"), ([str(small_case_set), "--compare", str(bad)],
+                                                              "not a knee compare CSV")):
+        sys.argv = ["skin_mismatch_floor.py", *argv]
+        try:
+            assert script.main() == 2
+        finally:
+            sys.argv = old
+        err = capsys.readouterr().err.strip().splitlines()
+        assert says in err[-1] and err[-1].startswith("error:") and "Traceback" not in "".join(err)
+    shutil.rmtree(tmp_path / "sub")
+
+
+def test_mismatch_targets_carry_the_floor_of_their_own_mismatch():
+    """The skin mismatch targets name what a perfect model reaches at that mismatch: the 0-1 mm line the
+    1 mm floors, the 2 mm line the 2 mm ones, each with (iii)'s median over the same cases only."""
+    from knee.app.experiments.case_set import CaseRow
+    from knee.app.experiments.skin_floor import SkinFloorRow
+    from knee.app.reports.case_set import targets
+
+    def row(case, mm, fp):
+        return CaseRow("links", "paper", 40.0, flexion_estimated_deg=40.0, femur_footprints_mm=fp,
+                       tibia_footprints_mm=fp, case=case, mismatch_mm=mm, shank_points_true=0)
+
+    rows = [row("a0", 0.0, 1.0), row("a1", 1.0, 2.0), row("b1", 1.0, 9.0), row("a2", 2.0, 4.0), row("b2", 2.0, 6.0)]
+    floors = [SkinFloorRow("a1", "phantom", "measured", 1.0, 1.0, 2.0, 0.5, 0.5),
+              SkinFloorRow("a2", "phantom", "measured", 2.0, 3.0, 5.0, 2.0, 3.0),
+              SkinFloorRow("b2", "phantom", "measured", 2.0, 5.0, 7.0, 3.0, 4.0)]
+    low, high = targets(rows, floors)[:2]
+    assert low.startswith("(iii) median footprint error at 0 and 1 mm skin mismatch: 2.00 mm over 3 cases")
+    assert "at 1 mm, on the 1 views" in low and "gives 1.50 mm with each bone" in low and "0.50 mm with the" in low
+    assert low.endswith("((iii) 2.00 mm there)")
+    assert "at 2 mm, on the 2 views" in high and "gives 5.00 mm with each bone" in high and "3.00 mm with the" in high
+    assert high.endswith("((iii) 5.00 mm there)")
+    assert targets(rows)[1].endswith("NOT met")  # no floors measured: nothing added

@@ -564,34 +564,37 @@ def test_an_overlap_is_split_between_the_femur_and_the_tibia_in_the_world(volunt
 
     monkeypatch.setattr(fm, "surface_phase", no_steps)
     tibia_pose = build_association_model(volunteer).tibia_pose
-    seen = {}
+    seen = []
 
     def overlap(model_, T):
         slide = -2.0 * np.asarray(T)[:3, 1]
         out = np.array(T, float)
         out[:3, 3] += slide
-        seen["T"] = out
+        seen.append(out)
         return out, slide
 
     monkeypatch.setattr(fm, "keep_bones_apart", overlap)
     runs = {share: fm.prior_method("init", build_association_model(volunteer), volunteer, pts, apart_share=share)
             for share in (0.0, 0.5, 1.0)}
     assert all("apart" in r.stages for r in runs.values())
-    (Tw0, rel0) = runs[0.0].stages["posed_skin"]
-    slide = seen["T"][:3, 3] - rel0[:3, 3]
-    for (share, r), cloud in zip(runs.items(), clouds):
+    for (share, r), cloud, T_slid in zip(runs.items(), clouds, seen):
+        # each run against its own stage before the slide (the runs agree only to the ICP's threaded sums)
+        (Tw0, rel0) = r.stages["posed_skin"]
+        assert Tw0 == pytest.approx(runs[0.0].stages["posed_skin"][0], abs=1e-3)
+        slide = T_slid[:3, 3] - rel0[:3, 3]
         Tw, rel = r.stages["apart"]
         # the cloud the surface forces pull to moved with the femur: it is the same cloud in the world
-        np.testing.assert_allclose(transform_points(Tw, cloud), transform_points(Tw0, clouds[0]), atol=1e-6)
-        assert r.stages["posed_skin"][0] == pytest.approx(Tw0) and r.stages["posed_skin"][1] == pytest.approx(rel0)
-        np.testing.assert_allclose(rel, seen["T"], atol=1e-9)
+        # (the share-0 run's, whose cloud did not move; to the runs' agreement)
+        np.testing.assert_allclose(transform_points(Tw, cloud), transform_points(*runs[0.0].stages["posed_skin"][:1],
+                                                                                 clouds[0]), atol=1e-3)
+        np.testing.assert_allclose(rel, T_slid, atol=1e-9)
         # the femur moved by -share * slide in the world, the tibia by (1 - share) * slide
         np.testing.assert_allclose(Tw[:3, 3] - Tw0[:3, 3], -share * Tw0[:3, :3] @ slide, atol=1e-6)
         np.testing.assert_allclose((Tw @ rel)[:3, 3] - (Tw0 @ rel0)[:3, 3], (1 - share) * Tw0[:3, :3] @ slide,
                                    atol=1e-6)
         # the grid's tibia is where the slide left it (no surface steps: the initialisation's bones)
         Tf, Tt = (r.bone_pose(b, r.bone_nodes[b]) for b in ("femur", "tibia"))
-        np.testing.assert_allclose(invert_poses(Tf) @ Tt @ tibia_pose, seen["T"], atol=0.05)
+        np.testing.assert_allclose(invert_poses(Tf) @ Tt @ tibia_pose, T_slid, atol=0.05)
     plain = fm.prior_method("init", build_association_model(volunteer), volunteer, pts, apart_share=None)
     assert "apart" not in plain.stages
     from knee.foundations.errors import KneeInputError

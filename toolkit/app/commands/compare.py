@@ -10,6 +10,7 @@ import numpy as np
 from knee.app.console import ProgressBar, flexion_list, out_dir, say
 from knee.app.experiments.case_set import is_case_set, read_case_set, run_case_set
 from knee.app.experiments.cases import compare_cases, prior_floor, truth_phantom
+from knee.app.experiments.skin_floor import skin_floor
 from knee.app.experiments.subject_cases import compare_subject
 from knee.app.reports import case_set as report
 from knee.app.reports.compare import (
@@ -170,13 +171,17 @@ def run_cases(args) -> int:
     say(f"knee compare: case set {args.model} (seed {index.get('seed')}), {n} cases x {len(methods)} methods")
     bar = ProgressBar()
     rows = run_case_set(args.model, methods, None if args.quiet else (lambda i, k, t: bar(i / k, t)), select)
+    try:  # what a perfect model reaches at the skin mismatches, where the set has the views to say it
+        floors = skin_floor(args.model, select=select)
+    except KneeInputError:
+        floors = []
     title = f"Case set {Path(args.model).name} (seed {index.get('seed')})"
     with staged_folder(out) as tmp:
         write_csv(rows, tmp / "compare.csv", extra=("case", "anatomy", "family", "mismatch_mm", "registration_inliers",
                                                             "shank_points_true"))
-        (tmp / "compare.md").write_text(report.markdown(rows, methods, title), encoding="utf-8")
+        (tmp / "compare.md").write_text(report.markdown(rows, methods, title, floors), encoding="utf-8")
         report.plot(rows, methods, tmp / "compare.png", title)
-    for line in report.targets(rows):
+    for line in report.targets(rows, floors):
         print(line)
     print(f"table: {out / 'compare.csv'}, {out / 'compare.md'}\nplot: {out / 'compare.png'}")
     return 0

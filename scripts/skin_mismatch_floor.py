@@ -1,0 +1,99 @@
+"""How much of the footprint error at 1 and 2 mm skin mismatch is the mismatch itself, on a case set
+(``scripts/build_case_set.py``): each such case's cloud registered rigidly onto the same view at 0 mm (the
+truth's own skin), each bone from its side of the knee ("separate") and the leg as one body with the bones at
+their true relative pose ("joined"; perfect skin and kinematics). With ``--compare`` (a ``knee compare``
+CSV of the same case set), the methods' errors on the same cases beside the floors.
+
+    .venv/bin/python scripts/skin_mismatch_floor.py CASE_SET [--compare COMPARE.csv] [--csv OUT.csv]
+
+About 0.2 s per case on the 2-core machine (the full set's 24: 6 s).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import statistics
+import sys
+import time
+
+METHOD_LABELS = {"links": "(iii)", "init": "(ii)", "kinematics": "(iv)", "paper": "(i)"}
+
+
+def _compare_rows(path) -> dict:
+    """{(case, method): mean footprint error} from a ``knee compare`` CSV; a clear error when it is not one."""
+    from knee.foundations.errors import KneeInputError
+
+    try:
+        with open(path, newline="") as f:
+            rows = list(csv.DictReader(f))
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise KneeInputError(f"{path}: cannot read it as a CSV ({e})") from None
+    need = {"case", "method", "femur_footprints_mm", "tibia_footprints_mm"}
+    if not rows or not need <= set(rows[0]):
+        raise KneeInputError(f"{path}: not a knee compare CSV of a case set (needs the columns "
+                             f"{', '.join(sorted(need))})")
+    out = {}
+    for r in rows:
+        try:
+            out[(r["case"], r["method"])] = 0.5 * (float(r["femur_footprints_mm"]) + float(r["tibia_footprints_mm"]))
+        except ValueError:
+            continue  # a failed run has no errors
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("cases", help="a case set folder (scripts/build_case_set.py)")
+    ap.add_argument("--compare", default=None, help="a knee compare CSV of the same case set")
+    ap.add_argument("--csv", default=None, help="write a row per case here")
+    args = ap.parse_args()
+    from knee.app.experiments.case_set import is_case_set
+    from knee.app.experiments.skin_floor import skin_floor
+    from knee.foundations.errors import KneeError
+
+    if not is_case_set(args.cases):
+        print(f"error: {args.cases} is not a case set (scripts/build_case_set.py builds one)", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+
+    def progress(i, n, text):
+        print(f"[{time.perf_counter() - t0:6.0f} s] {i}/{n} {text}", file=sys.stderr, flush=True)
+
+    try:
+        compared = _compare_rows(args.compare) if args.compare else {}
+        rows = skin_floor(args.cases, progress)
+    except KneeError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    methods = [m for m in METHOD_LABELS if any((r.case, m) in compared for r in rows)]
+    if args.csv:
+        with open(args.csv, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow([*(fl.name for fl in dataclasses.fields(rows[0])), "separate_mm", "joined_mm", *methods])
+            for r in rows:
+                w.writerow([*dataclasses.astuple(r), f"{r.separate_mm:.4g}", f"{r.joined_mm:.4g}",
+                            *(f"{compared.get((r.case, m), float('nan')):.4g}" for m in methods)])
+    head = ["case", "floor: separate (femur / tibia)", "floor: joined", *(METHOD_LABELS[m] for m in methods)]
+    print("| " + " | ".join(head) + " |")
+    print("|---|" + "---:|" * (len(head) - 1))
+    for r in rows:
+        cells = [f"{r.separate_mm:.2f} ({r.separate_femur_mm:.2f} / {r.separate_tibia_mm:.2f})", f"{r.joined_mm:.2f}",
+                 *(f"{compared[(r.case, m)]:.2f}" if (r.case, m) in compared else "-" for m in methods)]
+        print(f"| {r.case} | " + " | ".join(cells) + " |")
+    print()
+    print("| mismatch | cases | floor: separate | floor: joined | " + " | ".join(METHOD_LABELS[m] for m in methods) + " |")
+    print("|---:|---:|---:|---:|" + "---:|" * len(methods))
+    for mm in sorted({r.mismatch_mm for r in rows}):
+        g = [r for r in rows if r.mismatch_mm == mm]
+        cells = [f"{statistics.median(r.separate_mm for r in g):.2f}", f"{statistics.median(r.joined_mm for r in g):.2f}"]
+        for m in methods:
+            v = [compared[(r.case, m)] for r in g if (r.case, m) in compared]
+            cells.append(f"{statistics.median(v):.2f}" if v else "-")
+        print(f"| {mm:g} mm | {len(g)} | " + " | ".join(cells) + " |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,130 @@
+"""How far the skin mismatch alone moves a skin-based answer: a floor for the footprint errors at 1 and 2 mm
+skin mismatch on a case set (:mod:`knee.app.experiments.case_set`).
+
+Every pose of the case set is rendered from the paper's placement at each mismatch, the 0 mm image being the
+truth's own flexed skin (its other model of the tissue, no random field). A case at 1 or 2 mm is registered
+rigidly (point-to-plane ICP) onto its 0 mm twin, so the model is the truth's own skin and the only error is
+the random field (and the two images' sensor noise). Two floors:
+
+- ``separate``: each bone from its side of the knee, the femur by the points above the joint line in the true
+  femur's frame, the tibia by those below it in the true tibia's frame (a perfect skin, no knowledge of how
+  the bones move together);
+- ``joined``: the whole cloud as one body, the tibia carried with the femur at its true relative pose (a
+  perfect skin and perfect kinematics: only the leg's pose unknown).
+
+A method that registers skin can beat these only with knowledge neither has (for example that the field has
+no mean over the leg); they say how much of a method's error at a mismatch is the mismatch itself.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from knee.app.experiments.case_set import iter_cases, read_case_set
+from knee.app.experiments.subject_cases import _targets
+from knee.foundations.conventions import invert_poses, transform_points
+from knee.foundations.errors import KneeInputError
+from knee.foundations.pointclouds import backproject, icp, voxel_downsample
+from knee.models.evaluation import pose_errors
+from knee.models.prior import VOXEL_MM
+
+#: The ICP's reach (mm): the posed-skin registration's first reach, well beyond a 2 mm field.
+FLOOR_REACH_MM = 15.0
+FLOOR_ITERATIONS = 60
+
+
+@dataclass
+class SkinFloorRow:
+    """One case's floors: mean ACL/PCL footprint errors (mm; femur, tibia, and their mean) with the truth's
+    own skin as the model, each bone registered from its side of the knee (``separate``) or the leg as one
+    body (``joined``)."""
+
+    case: str
+    anatomy: str
+    family: str
+    mismatch_mm: float
+    separate_femur_mm: float
+    separate_tibia_mm: float
+    joined_femur_mm: float
+    joined_tibia_mm: float
+
+    @property
+    def separate_mm(self) -> float:
+        return 0.5 * (self.separate_femur_mm + self.separate_tibia_mm)
+
+    @property
+    def joined_mm(self) -> float:
+        return 0.5 * (self.joined_femur_mm + self.joined_tibia_mm)
+
+
+def _cloud(folder: Path, case: dict) -> np.ndarray:
+    fx, fy, cx, cy = case["intrinsics"]
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return voxel_downsample(backproject(np.load(folder / case["depth"]).astype(float), K), VOXEL_MM)
+
+
+def _register(points, clean, T_cam_bone) -> np.ndarray:
+    """The bone's pose (bone frame to camera) a registration of the clean skin (carried by ``T_cam_bone``)
+    onto ``points`` gives: the points in the true bone's frame registered onto the clean ones by E, the
+    bone is at ``T_cam_bone @ inv(E)``."""
+    to_bone = invert_poses(T_cam_bone)
+    E, _, _ = icp(transform_points(to_bone, points), transform_points(to_bone, clean), max_distance=FLOOR_REACH_MM,
+                  iterations=FLOOR_ITERATIONS)
+    return T_cam_bone @ invert_poses(E)
+
+
+def floor_poses(points, clean, T_cam_femur, T_cam_tibia, joint_y: float) -> dict:
+    """The femur's and tibia's poses (4, 4; rest model coordinates to the camera) a rigid registration of a
+    clean skin cloud ``clean`` (P, 3; camera frame, the bones at ``T_cam_femur``, ``T_cam_tibia``) onto
+    ``points`` (Q, 3) gives: ``{"separate": (Tf, Tt), "joined": (Tf, Tt)}`` (see the module docstring).
+    The sides of the knee are the model frame's joint line ``joint_y`` (mm) in each true bone's frame."""
+    points, clean = np.asarray(points, float), np.asarray(clean, float)
+    T_cam_femur, T_cam_tibia = np.asarray(T_cam_femur, float), np.asarray(T_cam_tibia, float)
+    side = {}
+    for bone, T, above in (("femur", T_cam_femur, True), ("tibia", T_cam_tibia, False)):
+        def keep(p):
+            y = transform_points(invert_poses(T), p)[:, 1]
+            return p[(y > joint_y) if above else (y < joint_y)]
+        side[bone] = _register(keep(points), keep(clean), T)
+    Tf = _register(points, clean, T_cam_femur)
+    return {"separate": (side["femur"], side["tibia"]),
+            "joined": (Tf, Tf @ invert_poses(T_cam_femur) @ T_cam_tibia)}
+
+
+def _twin_key(case: dict) -> tuple:
+    return (case["anatomy"], case["family"], case["camera"], tuple(case["truth_tf"]),
+            tuple(map(tuple, case["T_camera_femur_ct"])))
+
+
+def skin_floor(folder, progress: Callable[[int, int, str], None] | None = None,
+               select: Callable[[dict], bool] | None = None) -> list[SkinFloorRow]:
+    """The floors of every case (``select``: a filter) with a skin mismatch whose view was also rendered at
+    0 mm (the paper's placement). An error naming the case set when no case has such a twin."""
+    folder = Path(folder)
+    index = read_case_set(folder)
+    clean = {_twin_key(c): c for c in index["case"] if float(c["mismatch_mm"]) == 0.0}
+    wanted = {c["id"] for c in index["case"] if float(c["mismatch_mm"]) > 0.0 and _twin_key(c) in clean
+              and (select is None or select(c))}
+    if not wanted:
+        raise KneeInputError(f"{folder}: no case with a skin mismatch has its view rendered at 0 mm too; "
+                             "nothing to measure a floor against")
+    rows = []
+    for c, (anatomy, prior, T_ct_model), i, n in iter_cases(folder, lambda c: c["id"] in wanted):
+        if progress:
+            progress(i, n, c["id"])
+        tg = _targets(anatomy, prior)
+        T_cam_femur = np.asarray(c["T_camera_femur_ct"]) @ T_ct_model
+        T_cam_tibia = np.asarray(c["T_camera_tibia_ct"]) @ T_ct_model
+        poses = floor_poses(_cloud(folder, c), _cloud(folder, clean[_twin_key(c)]), T_cam_femur, T_cam_tibia,
+                            anatomy.joint_y)
+        e = {k: pose_errors(tg, T_cam_femur, T_cam_tibia, Tf, Tt) for k, (Tf, Tt) in poses.items()}
+        rows.append(SkinFloorRow(c["id"], c["anatomy"], c["family"], float(c["mismatch_mm"]),
+                             e["separate"].femur.footprints.mean, e["separate"].tibia.footprints.mean,
+                             e["joined"].femur.footprints.mean, e["joined"].tibia.footprints.mean))
+    if progress:
+        progress(len(rows), len(rows), "done")
+    return rows
