@@ -17,8 +17,9 @@ millimetre constants that assume one knee:
 
 How close the bones are at a pose of the tibia (:func:`bone_clearance`: the least signed distance between
 the two surfaces, negative where they overlap) and a tibia slid along its own axis to a given clearance
-(:func:`in_contact`): the honest benchmark's truth keeps a measured motion's bones as close as at the scan
-with them, and the prior's methods keep the bones they place from sinking into each other
+(:func:`in_contact`): the honest benchmark's truth keeps a measured motion's bones at the scan's clearance
+plus the measured knee's own change with them, and the prior's methods keep the bones they place from
+sinking into each other
 (:func:`knee.models.fem.methods.keep_bones_apart`).
 
 Frames: the femur's anatomical frame (x anterior, y proximal, z lateral, right knee; mm) is the model's

@@ -9,7 +9,8 @@ What makes the cases honest:
   set; for the Visible Human, a template scaled to the knee) plus a random deviation of the tibia, 1-3 mm
   and 2-5 deg ("mechanism+deviation"), and a measured motion, lenhart2015's dynamic MRI transferred as
   joint coordinates ("measured"; :func:`transferred`: its flexion, and the change of the other five from
-  the start of its arc); the prior is the truth mechanism with every TF link endpoint moved
+  the start of its arc; :func:`measured_poses`: the tibia then slid along its axis to the scan's clearance
+  plus the measured knee's own change of clearance); the prior is the truth mechanism with every TF link endpoint moved
   1-2 mm;
 - the truth's flexed skin comes from another model of the tissue (:mod:`knee.models.fem.tissue`:
   conforming hyperelastic tetrahedra, not the association model's embedding grid), plus a smooth random
@@ -39,6 +40,7 @@ import tomllib
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Callable
 
 import numpy as np
@@ -104,17 +106,38 @@ def template_prior(anatomy, template_name: str = "volunteer"):
     return dataclasses.replace(q, pf=None, initial=init, name=f"{template_name}-scaled-{s:.3f}", links=links), s
 
 
-def measured_motion(data_folder, flexions_deg) -> np.ndarray:
+def measured_motion(data_folder, flexions_deg, subject=None) -> np.ndarray:
     """lenhart2015's measured TF joint coordinates (n, 6; rad, mm) at ``flexions_deg``, from its trial's
-    half that covers more flexion (linear interpolation)."""
-    with tempfile.TemporaryDirectory() as tmp:
-        measured = load_subject(lenhart_subject(data_folder, Path(tmp) / "lenhart2015")).motion.tf
+    half that covers more flexion (linear interpolation), and the coordinates at that half's start.
+    ``subject``: lenhart2015's subject, when already loaded."""
+    if subject is None:
+        subject = _lenhart(data_folder)
+    measured = subject.motion.tf
     k = int(np.argmax(measured[:, 0]))
     up = max((measured[: k + 1], measured[k:]), key=lambda h: np.ptp(h[:, 0]))
     order = np.argsort(up[:, 0])
     a = np.radians(np.asarray(flexions_deg, float))
     q = np.column_stack([np.interp(a, up[order, 0], up[order, j]) for j in range(6)])
     return q, up[order[0]]
+
+
+def _lenhart(data_folder):
+    with tempfile.TemporaryDirectory() as tmp:
+        return load_subject(lenhart_subject(data_folder, Path(tmp) / "lenhart2015"))
+
+
+def measured_clearance_change(subject, q, start) -> np.ndarray:
+    """How much farther apart (mm, n; negative: closer) lenhart2015's own femur and tibia are at the joint
+    coordinates ``q`` (n, 6) of its measured motion than at ``start`` (6,): the least signed distance between
+    its CT bones (:func:`knee.models.fem.anatomy.bone_clearance`) posed by its own frames."""
+    frames = anatomical_frames(subject)
+    to_femur = invert_poses(frames["femur"])  # CT -> the femur frame
+    knee = SimpleNamespace(femur=subject.ct["femur"].copy().apply_transform(to_femur),
+                           tibia=subject.ct["tibia"].copy().apply_transform(to_femur),
+                           tibia_pose=to_femur @ frames["tibia"])
+    queries = bone_queries(knee)
+    c = [bone_clearance(knee, T, queries) for T in joint_to_pose(np.vstack([np.asarray(start, float)[None], q]))]
+    return np.asarray(c[1:]) - c[0]
 
 
 def transferred(q, start, scan_tf) -> np.ndarray:
@@ -133,15 +156,20 @@ def transferred(q, start, scan_tf) -> np.ndarray:
 def measured_poses(data, anatomy, flexions_deg) -> np.ndarray:
     """The tibia's poses (n, 4, 4; femur frame) of ``anatomy`` under lenhart2015's measured motion at
     ``flexions_deg``: the joint coordinates carried over (:func:`transferred`), then the tibia slid along its
-    own axis until the bones are as close as at the scan (:func:`in_contact`). Carried over as they are, the
-    measured knee's translations drove the Visible Human's tibia 4, 7 and 11 mm into its femur at 20, 30 and
-    45 deg (the two knees' frames put their origins differently about the condyles), a pose no knee takes
-    and no method that keeps the joint's contact can follow."""
-    q, start = measured_motion(data, flexions_deg)
+    own axis until the bones' clearance is the scan's plus the measured knee's own change of clearance from
+    the start of its arc (:func:`measured_clearance_change`; :func:`in_contact`). Carried over as they are,
+    the measured knee's translations drove the Visible Human's tibia 4, 7 and 11 mm into its femur at 20, 30
+    and 45 deg (the two knees' frames put their origins differently about the condyles), a pose no knee
+    takes. The measured knee's change of clearance (within about 0.6 mm over its arc) is kept rather than
+    the scan's clearance itself: the method (iii) slides overlapping bones back to the scan's clearance
+    (:func:`knee.models.fem.methods.keep_bones_apart`), and a truth made by that same rule would favour it."""
+    subject = _lenhart(data)
+    q, start = measured_motion(data, flexions_deg, subject)
+    change = measured_clearance_change(subject, q, start)
     queries = bone_queries(anatomy)
     clearance = bone_clearance(anatomy, anatomy.tibia_pose, queries)
-    return np.stack([in_contact(anatomy, T, clearance, queries=queries)
-                     for T in joint_to_pose(transferred(q, start, anatomy.scan_tf))])
+    return np.stack([in_contact(anatomy, T, clearance + dc, queries=queries)
+                     for T, dc in zip(joint_to_pose(transferred(q, start, anatomy.scan_tf)), change)])
 
 
 @dataclass

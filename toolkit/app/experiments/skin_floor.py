@@ -12,6 +12,8 @@ the random field (and the two images' sensor noise). Two floors:
 - ``joined``: the whole cloud as one body, the tibia carried with the femur at its true relative pose (a
   perfect skin and perfect kinematics: only the leg's pose unknown).
 
+The separate registration's flexion error says the same of the flexion target.
+
 A method that registers skin can beat these only with knowledge neither has (for example that the field has
 no mean over the leg); they say how much of a method's error at a mismatch is the mismatch itself.
 """
@@ -26,7 +28,7 @@ import numpy as np
 
 from knee.app.experiments.case_set import iter_cases, read_case_set
 from knee.app.experiments.subject_cases import _targets
-from knee.foundations.conventions import invert_poses, transform_points
+from knee.foundations.conventions import invert_poses, matrix_to_cardan, transform_points
 from knee.foundations.errors import KneeInputError
 from knee.foundations.pointclouds import backproject, icp, voxel_downsample
 from knee.models.evaluation import pose_errors
@@ -41,7 +43,8 @@ FLOOR_ITERATIONS = 60
 class SkinFloorRow:
     """One case's floors: mean ACL/PCL footprint errors (mm; femur, tibia, and their mean) with the truth's
     own skin as the model, each bone registered from its side of the knee (``separate``) or the leg as one
-    body (``joined``)."""
+    body (``joined``), and the flexion's error (deg; estimate less truth) of the separate registration (the
+    joined one has the true flexion by construction)."""
 
     case: str
     anatomy: str
@@ -51,6 +54,7 @@ class SkinFloorRow:
     separate_tibia_mm: float
     joined_femur_mm: float
     joined_tibia_mm: float
+    separate_flexion_error_deg: float
 
     @property
     def separate_mm(self) -> float:
@@ -95,6 +99,13 @@ def floor_poses(points, clean, T_cam_femur, T_cam_tibia, joint_y: float) -> dict
             "joined": (Tf, Tf @ invert_poses(T_cam_femur) @ T_cam_tibia)}
 
 
+def _flexion_deg(T_cam_femur, T_cam_tibia, tibia_pose) -> float:
+    """The Cardan flexion (deg) of the tibia relative to the femur, both posed in the camera's frame (rest
+    model coordinates to the camera; ``tibia_pose``: the tibia's frame in the femur frame at the scan)."""
+    rel = invert_poses(T_cam_femur) @ T_cam_tibia @ np.asarray(tibia_pose, float)
+    return float(np.degrees(matrix_to_cardan(rel[:3, :3])[0]))
+
+
 def _twin_key(case: dict) -> tuple:
     return (case["anatomy"], case["family"], case["camera"], tuple(case["truth_tf"]),
             tuple(map(tuple, case["T_camera_femur_ct"])))
@@ -123,8 +134,10 @@ def skin_floor(folder, progress: Callable[[int, int, str], None] | None = None,
                             anatomy.joint_y)
         e = {k: pose_errors(tg, T_cam_femur, T_cam_tibia, Tf, Tt) for k, (Tf, Tt) in poses.items()}
         rows.append(SkinFloorRow(c["id"], c["anatomy"], c["family"], float(c["mismatch_mm"]),
-                             e["separate"].femur.footprints.mean, e["separate"].tibia.footprints.mean,
-                             e["joined"].femur.footprints.mean, e["joined"].tibia.footprints.mean))
+                                 e["separate"].femur.footprints.mean, e["separate"].tibia.footprints.mean,
+                                 e["joined"].femur.footprints.mean, e["joined"].tibia.footprints.mean,
+                                 _flexion_deg(*poses["separate"], anatomy.tibia_pose)
+                                 - _flexion_deg(T_cam_femur, T_cam_tibia, anatomy.tibia_pose)))
     if progress:
         progress(len(rows), len(rows), "done")
     return rows
