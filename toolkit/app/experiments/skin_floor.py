@@ -27,7 +27,7 @@ from typing import Callable
 import numpy as np
 
 from knee.app.experiments.case_set import iter_cases, read_case_set
-from knee.app.experiments.subject_cases import _targets
+from knee.app.experiments.subject_cases import anatomy_targets
 from knee.foundations.conventions import invert_poses, matrix_to_cardan, transform_points
 from knee.foundations.errors import KneeInputError
 from knee.foundations.pointclouds import backproject, icp, voxel_downsample
@@ -127,7 +127,7 @@ def skin_floor(folder, progress: Callable[[int, int, str], None] | None = None,
     for c, (anatomy, prior, T_ct_model), i, n in iter_cases(folder, lambda c: c["id"] in wanted):
         if progress:
             progress(i, n, c["id"])
-        tg = _targets(anatomy, prior)
+        tg = anatomy_targets(anatomy, prior)
         T_cam_femur = np.asarray(c["T_camera_femur_ct"]) @ T_ct_model
         T_cam_tibia = np.asarray(c["T_camera_tibia_ct"]) @ T_ct_model
         poses = floor_poses(_cloud(folder, c), _cloud(folder, clean[_twin_key(c)]), T_cam_femur, T_cam_tibia,

@@ -99,7 +99,7 @@ def _rough_start(T_model_cam, rng) -> np.ndarray:
     return random_pose(rng, (ROUGH_DEG, ROUGH_DEG), (ROUGH_MM, ROUGH_MM), np.zeros(3)) @ T_model_cam
 
 
-def _targets(anatomy: KneeAnatomy, prior: Mechanism):
+def anatomy_targets(anatomy: KneeAnatomy, prior: Mechanism):
     """The target points of the errors: ACL/PCL footprints from the prior's attachments, the epiphyses."""
     fa = np.vstack([prior.params.link(n).femur for n in ("acl", "pcl")])
     ta = transform_points(anatomy.tibia_pose, np.vstack([prior.params.link(n).tibia for n in ("acl", "pcl")]))
@@ -112,7 +112,7 @@ def camera_target_errors(anatomy: KneeAnatomy, prior: Mechanism, recon, T_cam_wo
     ``T_cam_femur``, ``T_cam_tibia`` (4, 4) take the true bones' rest model coordinates (the femur frame,
     the tibia at its scan) to the camera. The estimated points are carried by each bone's rigid pose, as
     ``knee fem`` reports it (:meth:`knee.models.fem.methods.Reconstruction.bone_points`)."""
-    tg = _targets(anatomy, prior)
+    tg = anatomy_targets(anatomy, prior)
     return target_errors(tg, transform_points(T_cam_world, recon.bone_points("femur", tg.femur)),
                          transform_points(T_cam_world, recon.bone_points("tibia", tg.tibia)),
                          transform_points(T_cam_femur, tg.femur), transform_points(T_cam_tibia, tg.tibia))
@@ -144,7 +144,7 @@ def camera_stage_errors(anatomy: KneeAnatomy, prior: Mechanism, recon, T_cam_wor
     """The errors of each stage a reconstruction recorded (:attr:`knee.models.fem.methods.Reconstruction.
     stages`, in :data:`knee.models.fem.methods.STAGES` order) and of its final bones ("final", their rigid
     poses), in a camera's frame (arguments as :func:`camera_target_errors`)."""
-    tg = _targets(anatomy, prior)
+    tg = anatomy_targets(anatomy, prior)
     T_tib = np.asarray(anatomy.tibia_pose, float)
     T_cam_femur, T_cam_tibia = np.asarray(T_cam_femur, float), np.asarray(T_cam_tibia, float)
     rel_true = invert_poses(T_cam_femur) @ T_cam_tibia @ T_tib
