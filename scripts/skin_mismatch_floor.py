@@ -5,7 +5,8 @@ their true relative pose ("joined"; perfect skin and kinematics), and the flexio
 registration. With ``--compare`` (a ``knee compare`` CSV of the same case set), the methods' errors on the
 same cases beside the floors.
 
-    .venv/bin/python scripts/skin_mismatch_floor.py CASE_SET [--compare COMPARE.csv] [--csv OUT.csv]
+    .venv/bin/python scripts/skin_mismatch_floor.py CASE_SET [--compare COMPARE.csv [--plot OUT.png]]
+        [--csv OUT.csv]
 
 About 0.2 s per case on the 2-core machine (the full set's 24: 6 s).
 """
@@ -49,11 +50,15 @@ def main() -> int:
     ap.add_argument("cases", help="a case set folder (scripts/build_case_set.py)")
     ap.add_argument("--compare", default=None, help="a knee compare CSV of the same case set")
     ap.add_argument("--csv", default=None, help="write a row per case here")
+    ap.add_argument("--plot", default=None, help="with --compare: (iii)'s error against the floors, a PNG here")
     args = ap.parse_args()
     from knee.app.experiments.case_set import is_case_set
     from knee.app.experiments.skin_floor import skin_floor
     from knee.foundations.errors import KneeError
 
+    if args.plot and not args.compare:
+        print("error: --plot needs --compare (the methods' errors to plot against the floors)", file=sys.stderr)
+        return 2
     if not is_case_set(args.cases):
         print(f"error: {args.cases} is not a case set (scripts/build_case_set.py builds one)", file=sys.stderr)
         return 2
@@ -76,6 +81,10 @@ def main() -> int:
             for r in rows:
                 w.writerow([*dataclasses.astuple(r), f"{r.separate_mm:.4g}", f"{r.joined_mm:.4g}",
                             *(f"{compared.get((r.case, m), float('nan')):.4g}" for m in methods)])
+    if args.plot:
+        from knee.app.reports.case_set import plot_floor
+
+        plot_floor(rows, {case: e for (case, m), e in compared.items() if m == "links"}, args.plot)
     head = ["case", "floor: separate (femur / tibia)", "floor: joined", "separate's flexion error (deg)",
             *(METHOD_LABELS[m] for m in methods)]
     print("| " + " | ".join(head) + " |")

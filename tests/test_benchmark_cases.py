@@ -542,11 +542,13 @@ def test_skin_floor_on_the_case_set_and_its_script(small_case_set, tmp_path, cap
     compare.write_text("case,method,femur_footprints_mm,tibia_footprints_mm\n"
                        "phantom-mechanism-40-1mm-paper,links,1.0,3.0\n")
     old = sys.argv
-    sys.argv = ["skin_mismatch_floor.py", str(small_case_set), "--compare", str(compare)]
+    png = tmp_path / "floor.png"
+    sys.argv = ["skin_mismatch_floor.py", str(small_case_set), "--compare", str(compare), "--plot", str(png)]
     try:
         assert script.main() == 0
     finally:
         sys.argv = old
+    assert png.stat().st_size > 0
     out = capsys.readouterr().out
     assert "| 1 mm | 1 | " in out and out.rstrip().endswith("| 2.00 |")  # (iii): the mean of 1 and 3 mm
     assert " of 1 | 2.00 |" in out  # the separate floor's flexion within 2 deg, counted
@@ -556,7 +558,8 @@ def test_skin_floor_on_the_case_set_and_its_script(small_case_set, tmp_path, cap
     bad = tmp_path / "bad.csv"
     bad.write_text("a,b\n1,2\n")
     for argv, says in (([str(only_1mm)], "rendered at 0 mm"), ([str(small_case_set), "--compare", str(bad)],
-                                                              "not a knee compare CSV")):
+                                                              "not a knee compare CSV"),
+                       ([str(small_case_set), "--plot", str(tmp_path / "no.png")], "--plot needs --compare")):
         sys.argv = ["skin_mismatch_floor.py", *argv]
         try:
             assert script.main() == 2

@@ -181,3 +181,32 @@ def plot(rows, methods, path, title: str = "") -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def plot_floor(floors, errors: dict, path, label: str = "(iii) links") -> None:
+    """A method's footprint error per case (``errors``: {case: mm}) against the skin mismatch's floors on
+    that case (:func:`knee.app.experiments.skin_floor.skin_floor`'s rows): each bone read from its side
+    of the knee (filled) and the leg as one body with the bones' relative pose known (open), coloured by
+    the mismatch; on the diagonal the method is exactly at the floor."""
+    fig, ax = plt.subplots(figsize=(5.2, 4.8))
+    colours = {1.0: "tab:blue", 2.0: "tab:red"}
+    top = 1.0
+    for mm in sorted({f.mismatch_mm for f in floors}):
+        fl = [f for f in floors if f.mismatch_mm == mm and f.case in errors]
+        y = [errors[f.case] for f in fl]
+        c = colours.get(mm, "tab:gray")
+        ax.scatter([f.separate_mm for f in fl], y, s=22, color=c, label=f"{mm:g} mm: each bone from its side")
+        ax.scatter([f.joined_mm for f in fl], y, s=22, facecolors="none", edgecolors=c,
+                   label=f"{mm:g} mm: bones' relative pose known")
+        top = max([top, *y, *(f.separate_mm for f in fl)])
+    ax.plot([0, top * 1.05], [0, top * 1.05], color="k", lw=1, ls=":")
+    ax.set_xlim(0, top * 1.05)
+    ax.set_ylim(0, top * 1.05)
+    ax.set_xlabel("floor: the truth's own skin registered rigidly (mm)")
+    ax.set_ylabel(f"{label} footprint error (mm)")
+    ax.set_title("Footprint error against the skin mismatch's floor", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
