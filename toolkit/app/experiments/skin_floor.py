@@ -14,8 +14,10 @@ the random field (and the two images' sensor noise). Two floors:
 
 The separate registration's flexion error says the same of the flexion target.
 
-A method that registers skin can beat these only with knowledge neither has (for example that the field has
-no mean over the leg); they say how much of a method's error at a mismatch is the mismatch itself.
+A method that registers skin gets below the separate floor only with knowledge of how the bones move
+together (a kinematic prior, which the joined floor has exactly), and below the joined one only with
+knowledge of the field itself (its statistics); they say how much of a method's error at a mismatch is the
+mismatch itself.
 """
 
 from __future__ import annotations
