@@ -366,6 +366,50 @@ def test_compare_on_a_case_set_writes_its_report(small_case_set, tmp_path, capsy
     assert len(rows) == 5 and "mismatch_mm" in rows[0]
     # the 1 mm view has its 0 mm twin: the 0-1 mm target says what a perfect model reaches there
     assert "at 1 mm, on the 1 views also rendered at 0 mm" in md and "(iii)" in md.split("views also")[1]
+    # the recording: a valid file with the cloud, the truth's and each method's bones and the errors
+    printed = _rrd_print(out / "compare.rrd")
+    for entity in ("/compare/depth", "/compare/truth/femur/mesh", "/compare/truth/tibia", "/compare/links/femur/mesh",
+                   "/compare/kinematics/tibia", "/metrics/links/footprints_mm", "/compare/case"):
+        assert entity in printed, entity
+
+
+def _rrd_print(path) -> str:
+    """``rerun rrd verify`` must pass; the output of ``rerun rrd print``."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    rerun_bin = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
+    env = dict(os.environ, CI="1")
+    v = subprocess.run([rerun_bin, "rrd", "verify", str(path)], capture_output=True, text=True, env=env, timeout=120)
+    assert v.returncode == 0, v.stderr
+    return subprocess.run([rerun_bin, "rrd", "print", str(path)], capture_output=True, text=True, env=env,
+                          timeout=120).stdout
+
+
+def test_case_set_recording_hides_a_failed_runs_bones(small_case_set, tmp_path):
+    """A run that failed clears its method's bones at that case (they are not left where the last case had
+    them) and the next success logs its mesh again; the file stays valid."""
+    from knee.app.experiments.case_set import CaseRow, iter_cases
+    from knee.app.reports.case_set import CaseSetRecorder
+
+    path = tmp_path / "r.rrd"
+    rec = CaseSetRecorder(path, ["links"])
+    cases = list(iter_cases(small_case_set))[:2]
+    row = CaseRow("links", "paper", 40.0, femur_footprints_mm=1.0, tibia_footprints_mm=2.0)
+    poses = {"femur": np.eye(4), "tibia": np.eye(4)}
+    pts = np.random.default_rng(0).normal(size=(50, 3)) * 20.0
+    (c0, (anatomy, _, _), _, _), (c1, _, _, _) = cases
+    rec(c0, anatomy, "links", pts, poses, poses, row)
+    rec(c1, anatomy, "links", None, None, None, row)  # failed
+    assert "compare/links/femur" not in rec.meshes
+    rec(c1, anatomy, "kinematics", pts, poses, poses, row)
+    rec.finish()
+    printed = _rrd_print(path)
+    assert "Clear" in printed or "clear" in printed.lower()
+    assert "/compare/links/femur/mesh" in printed and "/compare/kinematics/femur/mesh" in printed
 
 
 def test_a_measured_motion_is_carried_over_as_its_change_from_the_start_of_its_arc():

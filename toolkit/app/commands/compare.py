@@ -170,18 +170,24 @@ def run_cases(args) -> int:
         raise KneeInputError(f"--only {args.only!r} selects none of the {len(index['case'])} cases")
     say(f"knee compare: case set {args.model} (seed {index.get('seed')}), {n} cases x {len(methods)} methods")
     bar = ProgressBar()
-    rows = run_case_set(args.model, methods, None if args.quiet else (lambda i, k, t: bar(i / k, t)), select)
-    try:  # what a perfect model reaches at the skin mismatches, where the set has the views to say it
-        floors = skin_floor(args.model, select=select)
-    except KneeInputError:
-        floors = []
     title = f"Case set {Path(args.model).name} (seed {index.get('seed')})"
     with staged_folder(out) as tmp:
+        recorder = report.CaseSetRecorder(tmp / "compare.rrd", methods)
+        try:
+            rows = run_case_set(args.model, methods, None if args.quiet else (lambda i, k, t: bar(i / k, t)), select,
+                                on_result=recorder)
+        finally:
+            recorder.finish()
+        try:  # what a perfect model reaches at the skin mismatches, where the set has the views to say it
+            floors = skin_floor(args.model, select=select)
+        except KneeInputError:
+            floors = []
         write_csv(rows, tmp / "compare.csv", extra=("case", "anatomy", "family", "mismatch_mm", "registration_inliers",
                                                             "shank_points_true"))
         (tmp / "compare.md").write_text(report.markdown(rows, methods, title, floors), encoding="utf-8")
         report.plot(rows, methods, tmp / "compare.png", title)
     for line in report.targets(rows, floors):
         print(line)
-    print(f"table: {out / 'compare.csv'}, {out / 'compare.md'}\nplot: {out / 'compare.png'}")
+    print(f"table: {out / 'compare.csv'}, {out / 'compare.md'}\nplot: {out / 'compare.png'}\n"
+          f"recording: {out / 'compare.rrd'}  (open with: rerun {out / 'compare.rrd'})")
     return 0

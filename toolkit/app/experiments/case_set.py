@@ -376,13 +376,16 @@ def seen_shank_points(anatomy, points_cam, T_cam_tibia) -> int:
 
 
 def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T_ct_model, stages: bool = False,
-             **options) -> tuple[CaseRow, list]:
+             on_result: Callable | None = None, **options) -> tuple[CaseRow, list]:
     """One method on one case: the depth image and the rough pose in, the bones in the camera's frame out,
     measured at the target points (ACL/PCL footprints from the prior's attachments, the epiphyses); the row,
     and with ``stages`` the errors of each stage of the method
     (:func:`knee.app.experiments.subject_cases.camera_stage_errors`; otherwise an empty list). The paper's
     method runs at its best reading (:data:`knee.models.fem.methods.PAPER_AT_BEST`, which ``options`` may
-    override)."""
+    override). ``on_result(case, anatomy, method, points_cam, truth, estimate, row)``, when given, gets the
+    depth points and the true and estimated bones' poses (``{"femur": (4, 4), "tibia": (4, 4)}``, rest model
+    coordinates to the camera; the estimate's are the rigid poses the errors are taken at); for a run that
+    failed (:func:`run_case_set`) the points and poses are None."""
     depth = np.load(folder / case["depth"])
     fx, fy, cx, cy = case["intrinsics"]
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
@@ -403,6 +406,11 @@ def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T
                              mismatch_mm=float(case["mismatch_mm"]), registration_inliers=rough.inliers,
                              shank_points_true=seen_shank_points(anatomy, pts, T_cam_tibia))
     staged = camera_stage_errors(anatomy, prior, recon, T_cam_world, T_cam_femur, T_cam_tibia) if stages else []
+    if on_result is not None:
+        fem = recon.grid_x is not None and recon.bone_nodes is not None
+        estimate = {b: T_cam_world @ (recon.bone_pose(b, recon.bone_nodes[b]) if fem else recon.rigid[b])
+                    for b in ("femur", "tibia")}
+        on_result(case, anatomy, method, pts, {"femur": T_cam_femur, "tibia": T_cam_tibia}, estimate, row)
     return row, staged
 
 
@@ -439,13 +447,16 @@ def iter_cases(folder, select: Callable[[dict], bool] | None = None):
 
 
 def run_case_set(folder, methods, progress: Callable[[int, int, str], None] | None = None,
-                 select: Callable[[dict], bool] | None = None, **options) -> list[CaseRow]:
-    """Every method on every case of a case set (``select``: a filter on the cases; ``options`` go to
+                 select: Callable[[dict], bool] | None = None, on_result: Callable | None = None,
+                 **options) -> list[CaseRow]:
+    """Every method on every case of a case set (``select``: a filter on the cases; ``on_result``: as
+    :func:`run_case`'s, called for failed runs too; ``options`` go to
     :func:`knee.models.fem.methods.prior_method`); a run that fails is a row with its reason."""
-    return [row for row, _ in _run_all(folder, methods, progress, select, **options)]
+    return [row for row, _ in _run_all(folder, methods, progress, select, on_result=on_result, **options)]
 
 
-def _run_all(folder, methods, progress, select, stages: bool = False, **options) -> list[tuple[CaseRow, list]]:
+def _run_all(folder, methods, progress, select, stages: bool = False, on_result: Callable | None = None,
+             **options) -> list[tuple[CaseRow, list]]:
     """Every method on every selected case: :func:`run_case`'s (row, stage errors) each, a failed run a row
     with its reason and no stages."""
     folder = Path(folder)
@@ -455,9 +466,12 @@ def _run_all(folder, methods, progress, select, stages: bool = False, **options)
             if progress:
                 progress(i * len(methods) + j, n * len(methods), f"{m} on {c['id']}")
             try:
-                out.append(run_case(folder, c, m, anatomy, prior, T_ct_model, stages=stages, **options))
+                out.append(run_case(folder, c, m, anatomy, prior, T_ct_model, stages=stages, on_result=on_result,
+                                    **options))
             except KneeError as e:
                 out.append((_failed_row(m, c, e), []))
+                if on_result is not None:
+                    on_result(c, anatomy, m, None, None, None, out[-1][0])
     if progress:
         progress(len(out), len(out), "done")
     return out

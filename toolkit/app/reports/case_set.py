@@ -1,5 +1,11 @@
 """The case set's report (``knee compare CASE_SET``): every run listed, the medians per method and case
-family, the issue's targets checked, and a figure per method x family."""
+family, the issue's targets checked, a figure per method x family, and a Rerun recording.
+
+Recording layout (:class:`CaseSetRecorder`), in the camera's frame (mm; x right, y down, z forward): one
+``case`` step per case; ``compare/depth`` the case's depth points, ``compare/truth/{femur,tibia}`` the true
+bones, ``compare/<method>/{femur,tibia}`` each method's bones at the rigid poses its errors are taken at
+(absent where the run failed), ``compare/case`` what the case is; ``metrics/<method>/footprints_mm`` the
+mean footprint error per case. Toggle a method's entity in the viewer's tree to show or hide it."""
 
 from __future__ import annotations
 
@@ -12,8 +18,12 @@ import matplotlib
 matplotlib.use("Agg")  # files only, no display
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+import rerun as rr  # noqa: E402
 
-from knee.models.prior import MIN_SEEN_SHANK  # noqa: E402
+from knee.app.reports.compare import METHOD_COLOURS, compare_blueprint  # noqa: E402
+from knee.foundations import recording as R  # noqa: E402
+from knee.foundations.pointclouds import voxel_downsample  # noqa: E402
+from knee.models.prior import MIN_SEEN_SHANK, VOXEL_MM  # noqa: E402
 
 #: The paper's own figures (seed 000): mean footprint and epiphysis errors, femur / tibia (mm).
 PAPER_FOOTPRINTS_MM = (3.81, 3.89)
@@ -210,3 +220,53 @@ def plot_floor(floors, errors: dict, path, label: str = "(iii) links") -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+class CaseSetRecorder:
+    """``on_result`` callback of :func:`knee.app.experiments.case_set.run_case_set` writing the recording
+    (layout: the module docstring). Each bone's mesh is logged when its anatomy's first case comes (and
+    again after a failed run cleared it); every case then only moves it, so the file holds two meshes per
+    bone and entity, not one per case."""
+
+    def __init__(self, path, methods):
+        self.rec = R.new_recording()
+        R.save(self.rec, path, compare_blueprint(methods))
+        self.rec.log("compare", rr.ViewCoordinates.RDF, static=True)
+        self.case, self.index, self.shown = None, -1, False
+        self.meshes = {}  # entity -> the anatomy whose mesh it holds now
+
+    def _place(self, entity: str, anatomy, bone: str, T, colour) -> None:
+        if self.meshes.get(entity) != anatomy.name:
+            mesh = getattr(anatomy, bone)
+            self.rec.log(f"{entity}/mesh", rr.Mesh3D(vertex_positions=np.asarray(mesh.vertices, np.float32),
+                                                     triangle_indices=np.asarray(mesh.faces, np.uint32),
+                                                     albedo_factor=colour))
+            self.meshes[entity] = anatomy.name
+        self.rec.log(entity, rr.Transform3D(translation=np.asarray(T, float)[:3, 3], mat3x3=np.asarray(T, float)[:3, :3]))
+
+    def __call__(self, case: dict, anatomy, method: str, points_cam, truth, estimate, row) -> None:
+        if case["id"] != self.case:
+            self.case, self.index, self.shown = case["id"], self.index + 1, False
+            self.rec.set_time("case", sequence=self.index)
+            self.rec.log("compare/case", rr.TextDocument(
+                f"{case['id']}: {case['family']}, true flexion {float(case['flexion_deg']):.1f} deg, skin mismatch "
+                f"{float(case['mismatch_mm']):g} mm, camera {case['camera']}"))
+            self.rec.log("compare/depth", rr.Clear(recursive=False))
+        self.rec.set_time("case", sequence=self.index)
+        if points_cam is not None and not self.shown:  # the first run of the case that did not fail
+            self.shown = True
+            self.rec.log("compare/depth", rr.Points3D(voxel_downsample(np.asarray(points_cam, float), VOXEL_MM),
+                                                      colors=(150, 150, 150), radii=0.8))
+            for bone in ("femur", "tibia"):
+                self._place(f"compare/truth/{bone}", anatomy, bone, truth[bone], (235, 235, 235, 120))
+        if estimate is None:  # a failed run: its bones are not shown at this case
+            self.rec.log(f"compare/{method}", rr.Clear(recursive=True))
+            for bone in ("femur", "tibia"):
+                self.meshes.pop(f"compare/{method}/{bone}", None)
+            return
+        for bone in ("femur", "tibia"):
+            self._place(f"compare/{method}/{bone}", anatomy, bone, estimate[bone], METHOD_COLOURS.get(method, (128, 128, 128)))
+        self.rec.log(f"metrics/{method}/footprints_mm", rr.Scalars(row.footprints_mm))
+
+    def finish(self) -> None:
+        R.close(self.rec)
