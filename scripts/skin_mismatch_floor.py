@@ -6,7 +6,11 @@ registration. With ``--compare`` (a ``knee compare`` CSV of the same case set), 
 same cases beside the floors.
 
     .venv/bin/python scripts/skin_mismatch_floor.py CASE_SET [--compare COMPARE.csv [--plot OUT.png]]
-        [--csv OUT.csv]
+        [--csv OUT.csv] [--tissue]
+
+With ``--tissue``, also the floor without skin mismatch that the model's own tissue sets: on each 0 mm case the
+association model posed with the true bones and the femur placed on its skin from the true pose, as methods
+(ii)/(iii) place it (:func:`knee.app.experiments.skin_floor.tissue_floor`).
 
 About 0.2 s per case on the 2-core machine (the full set's 24: 6 s).
 """
@@ -24,7 +28,8 @@ METHOD_LABELS = {"links": "(iii)", "init": "(ii)", "kinematics": "(iv)", "paper"
 
 
 def _compare_rows(path) -> dict:
-    """{(case, method): mean footprint error} from a ``knee compare`` CSV; a clear error when it is not one."""
+    """{(case, method): mean footprint error} and {(case, method): the femur's} from a ``knee compare`` CSV; a
+    clear error when it is not one."""
     from knee.foundations.errors import KneeInputError
 
     try:
@@ -36,13 +41,14 @@ def _compare_rows(path) -> dict:
     if not rows or not need <= set(rows[0]):
         raise KneeInputError(f"{path}: not a knee compare CSV of a case set (needs the columns "
                              f"{', '.join(sorted(need))})")
-    out = {}
+    out, femur = {}, {}
     for r in rows:
         try:
             out[(r["case"], r["method"])] = 0.5 * (float(r["femur_footprints_mm"]) + float(r["tibia_footprints_mm"]))
+            femur[(r["case"], r["method"])] = float(r["femur_footprints_mm"])
         except ValueError:
             continue  # a failed run has no errors
-    return out
+    return out, femur
 
 
 def main() -> int:
@@ -51,6 +57,9 @@ def main() -> int:
     ap.add_argument("--compare", default=None, help="a knee compare CSV of the same case set")
     ap.add_argument("--csv", default=None, help="write a row per case here")
     ap.add_argument("--plot", default=None, help="with --compare: (iii)'s error against the floors, a PNG here")
+    ap.add_argument("--tissue", action="store_true",
+                    help="also the tissue's floor at 0 mm: the femur placed on the association model's skin posed "
+                         "with the true bones (about 1 s per case)")
     args = ap.parse_args()
     from knee.app.experiments.case_set import is_case_set
     from knee.app.experiments.skin_floor import skin_floor
@@ -68,7 +77,7 @@ def main() -> int:
         print(f"[{time.perf_counter() - t0:6.0f} s] {i}/{n} {text}", file=sys.stderr, flush=True)
 
     try:
-        compared = _compare_rows(args.compare) if args.compare else {}
+        compared, femur = _compare_rows(args.compare) if args.compare else ({}, {})
         rows = skin_floor(args.cases, progress)
     except KneeError as e:
         print(f"error: {e}", file=sys.stderr)
@@ -106,6 +115,19 @@ def main() -> int:
             v = [compared[(r.case, m)] for r in g if (r.case, m) in compared]
             cells.append(f"{statistics.median(v):.2f}" if v else "-")
         print(f"| {mm:g} mm | {len(g)} | " + " | ".join(cells) + " |")
+    if args.tissue:
+        from knee.app.experiments.skin_floor import tissue_floor
+
+        tissue = tissue_floor(args.cases, progress)
+        print()
+        print("| case (0 mm) | femur footprints: tissue's floor | (iii) femur footprints |")
+        print("|---|---:|---:|")
+        for case, e in tissue:
+            mine = femur.get((case, "links"))
+            print(f"| {case} | {e:.2f} | " + (f"{mine:.2f}" if mine is not None else "-") + " |")
+        mine = [femur[(case, "links")] for case, _ in tissue if (case, "links") in femur]
+        print(f"| median of {len(tissue)} | {statistics.median(e for _, e in tissue):.2f} | "
+              + (f"{statistics.median(mine):.2f}" if mine else "-") + " |")
     return 0
 
 

@@ -587,15 +587,18 @@ def test_skin_floor_on_the_case_set_and_its_script(small_case_set, tmp_path, cap
                        "phantom-mechanism-40-1mm-paper,links,1.0,3.0\n")
     old = sys.argv
     png = tmp_path / "floor.png"
-    sys.argv = ["skin_mismatch_floor.py", str(small_case_set), "--compare", str(compare), "--plot", str(png)]
+    sys.argv = ["skin_mismatch_floor.py", str(small_case_set), "--compare", str(compare), "--plot", str(png),
+                "--tissue"]
     try:
         assert script.main() == 0
     finally:
         sys.argv = old
     assert png.stat().st_size > 0
     out = capsys.readouterr().out
-    assert "| 1 mm | 1 | " in out and out.rstrip().endswith("| 2.00 |")  # (iii): the mean of 1 and 3 mm
+    line, = [ln for ln in out.splitlines() if ln.startswith("| 1 mm | 1 | ")]
+    assert line.endswith("| 2.00 |")  # (iii): the mean of 1 and 3 mm
     assert " of 1 | 2.00 |" in out  # the separate floor's flexion within 2 deg, counted
+    assert "| phantom-mechanism-40-0mm-paper | " in out and "| median of 1 | " in out  # the tissue's floor
     only_1mm = build_case_set(tmp_path / "sub", seed=4, data=None, mechanism_flexions=(40.0,), mismatches=(1.0,))
     with pytest.raises(KneeInputError, match="rendered at 0 mm"):
         skin_floor(only_1mm)
@@ -636,3 +639,41 @@ def test_mismatch_targets_carry_the_floor_of_their_own_mismatch():
     assert "at 2 mm, on the 2 views" in high and "gives 5.00 mm with each bone" in high and "3.00 mm with the" in high
     assert high.endswith("((iii) 5.00 mm there)")
     assert targets(rows)[1].endswith("NOT met")  # no floors measured: nothing added
+
+
+def test_tissue_floor_is_zero_on_the_models_own_posed_skin(small_case_set):
+    """The tissue's floor poses the association model with the true tibia and places the femur on its skin:
+    given a depth image of that very skin (rendered from the case's camera), the femur lands where it is
+    (the points taken into the femur's frame wrongly would put it millimetres off), and the model's tibia is
+    the true one (posed off it, on the prior's path, it would be millimetres away); on the case's own image (the truth's other tissue) it is not
+    zero, and the case set's floor measures that."""
+    from knee.app.experiments.case_set import iter_cases
+    from knee.app.experiments.skin_floor import _cloud, tissue_floor, tissue_floor_pose
+    from knee.foundations.conventions import invert_poses
+    from knee.foundations.pointclouds import backproject
+    from knee.models.fem.depth import Camera, render_depth
+    from knee.models.fem.mapping import TrilinearMapping
+    from knee.models.fem.scene import build_knee_model
+
+    (c, (anatomy, prior, T_ct_model), _, _), = iter_cases(small_case_set, lambda c: c["mismatch_mm"] == 0)
+    Tf = np.asarray(c["T_camera_femur_ct"]) @ T_ct_model
+    Tt = np.asarray(c["T_camera_tibia_ct"]) @ T_ct_model
+    model = build_knee_model(anatomy, prior=prior)
+    tissue_floor_pose(anatomy, prior, _cloud(small_case_set, c), Tf, Tt, model=model)  # poses the model
+    from knee.foundations.geometry import rigid_register
+    from knee.models.fem.methods import bone_rest_nodes
+
+    rest = bone_rest_nodes(model)["tibia"]
+    T_tibia = rigid_register(rest, TrilinearMapping(model.grid, rest).apply(model.solver.x))[0]
+    tip = np.array([0.0, anatomy.joint_y - 40.0, 0.0, 1.0])  # a point of the tibia, 40 mm below the joint line
+    assert np.linalg.norm((T_tibia @ tip - invert_poses(Tf) @ Tt @ tip)[:3]) < 0.3
+    skin = TrilinearMapping(model.grid, model.skin_vertices).apply(model.solver.x)
+    fx, fy, cx, cy = c["intrinsics"]
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    cam = Camera(K, int(round(2 * cx)), int(round(2 * cy)), invert_poses(Tf))  # the camera in the model frame
+    own = backproject(render_depth(skin, model.skin_faces, cam), K)
+    T_est = tissue_floor_pose(anatomy, prior, own, Tf, Tt)
+    knee_centre = np.array([0.0, anatomy.joint_y, 0.0, 1.0])
+    assert np.linalg.norm((T_est @ knee_centre - Tf @ knee_centre)[:3]) < 0.2
+    (case, err), = tissue_floor(small_case_set)
+    assert case == c["id"] and 0.02 < err < 6.0

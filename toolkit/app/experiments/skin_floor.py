@@ -108,6 +108,54 @@ def _flexion_deg(T_cam_femur, T_cam_tibia, tibia_pose) -> float:
     return float(np.degrees(matrix_to_cardan(rel[:3, :3])[0]))
 
 
+def tissue_floor_pose(anatomy, prior, points_cam, T_cam_femur, T_cam_tibia, model=None) -> np.ndarray:
+    """The femur's pose (4, 4; model frame to the camera) that the placement of methods (ii)/(iii) on the
+    FEM-posed skin (:func:`knee.models.fem.methods.register_to_posed_skin`) gives when everything before it
+    is exact: the association model posed with the true tibia (its skin as the FEM then has it), the depth
+    points ``points_cam`` (camera frame) taken into the true femur's frame. Its error is the model's tissue
+    against the truth's, with nothing else wrong. ``model``: the anatomy's association model, when built."""
+    from scipy.spatial.transform import Rotation
+
+    from knee.foundations.conventions import pose_to_joint
+    from knee.models.fem.methods import initialise_from_prior, quasi_static, register_to_posed_skin, tibia_path
+    from knee.models.fem.scene import build_knee_model
+
+    model = build_knee_model(anatomy, prior=prior) if model is None else model
+    T_cam_femur = np.asarray(T_cam_femur, float)
+    rel = invert_poses(T_cam_femur) @ np.asarray(T_cam_tibia, float) @ anatomy.tibia_pose
+    alpha = float(pose_to_joint(rel)[0])
+    D = invert_poses(tibia_path(prior, model, alpha)[0]) @ rel  # what takes the prior's path to the truth
+    with quasi_static(model.solver):
+        initialise_from_prior(model, prior, alpha, correction_xi=np.r_[Rotation.from_matrix(D[:3, :3]).as_rotvec(),
+                                                                       D[:3, 3]])
+        T_fix, _ = register_to_posed_skin(model, transform_points(invert_poses(T_cam_femur), points_cam))
+    return T_cam_femur @ invert_poses(T_fix)
+
+
+def tissue_floor(folder, progress: Callable[[int, int, str], None] | None = None,
+                 select: Callable[[dict], bool] | None = None) -> list[tuple[str, float]]:
+    """(case id, the femur's mean footprint error in mm) of :func:`tissue_floor_pose` on every case without
+    skin mismatch (``select``: a filter), where the truth's skin differs from the model's only by its
+    other model of the tissue. An error naming the case set when it has no such case."""
+    folder = Path(folder)
+    wanted = {c["id"] for c in read_case_set(folder)["case"] if float(c["mismatch_mm"]) == 0.0
+              and (select is None or select(c))}
+    if not wanted:
+        raise KneeInputError(f"{folder}: no case without skin mismatch; nothing to measure the tissue's floor on")
+    out = []
+    for c, (anatomy, prior, T_ct_model), i, n in iter_cases(folder, lambda c: c["id"] in wanted):
+        if progress:
+            progress(i, n, c["id"])
+        T_cam_femur = np.asarray(c["T_camera_femur_ct"]) @ T_ct_model
+        T_cam_tibia = np.asarray(c["T_camera_tibia_ct"]) @ T_ct_model
+        Tf = tissue_floor_pose(anatomy, prior, _cloud(folder, c), T_cam_femur, T_cam_tibia)
+        e = pose_errors(anatomy_targets(anatomy, prior), T_cam_femur, T_cam_tibia, Tf, T_cam_tibia)
+        out.append((c["id"], e.femur.footprints.mean))
+    if progress:
+        progress(len(out), len(out), "done")
+    return out
+
+
 def _twin_key(case: dict) -> tuple:
     return (case["anatomy"], case["family"], case["camera"], tuple(case["truth_tf"]),
             tuple(map(tuple, case["T_camera_femur_ct"])))
