@@ -27,13 +27,16 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from knee.app.experiments.case_set import iter_cases, read_case_set
 from knee.app.experiments.subject_cases import anatomy_targets
-from knee.foundations.conventions import invert_poses, matrix_to_cardan, transform_points
+from knee.foundations.conventions import invert_poses, matrix_to_cardan, pose_to_joint, transform_points
 from knee.foundations.errors import KneeInputError
 from knee.foundations.pointclouds import backproject, icp, voxel_downsample
 from knee.models.evaluation import pose_errors
+from knee.models.fem.methods import initialise_from_prior, quasi_static, register_to_posed_skin, tibia_path
+from knee.models.fem.scene import build_knee_model
 from knee.models.prior import VOXEL_MM
 
 #: The ICP's reach (mm): the posed-skin registration's first reach, well beyond a 2 mm field.
@@ -114,12 +117,6 @@ def tissue_floor_pose(anatomy, prior, points_cam, T_cam_femur, T_cam_tibia, mode
     is exact: the association model posed with the true tibia (its skin as the FEM then has it), the depth
     points ``points_cam`` (camera frame) taken into the true femur's frame. Its error is the model's tissue
     against the truth's, with nothing else wrong. ``model``: the anatomy's association model, when built."""
-    from scipy.spatial.transform import Rotation
-
-    from knee.foundations.conventions import pose_to_joint
-    from knee.models.fem.methods import initialise_from_prior, quasi_static, register_to_posed_skin, tibia_path
-    from knee.models.fem.scene import build_knee_model
-
     model = build_knee_model(anatomy, prior=prior) if model is None else model
     T_cam_femur = np.asarray(T_cam_femur, float)
     rel = invert_poses(T_cam_femur) @ np.asarray(T_cam_tibia, float) @ anatomy.tibia_pose
