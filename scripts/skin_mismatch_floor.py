@@ -23,6 +23,7 @@ import dataclasses
 import statistics
 import sys
 import time
+from pathlib import Path
 
 METHOD_LABELS = {"links": "(iii)", "init": "(ii)", "kinematics": "(iv)", "paper": "(i)"}
 
@@ -68,6 +69,10 @@ def main() -> int:
     if args.plot and not args.compare:
         print("error: --plot needs --compare (the methods' errors to plot against the floors)", file=sys.stderr)
         return 2
+    for given in (args.csv, args.plot):
+        if given and Path(given).exists():
+            print(f"error: {given} exists; not overwritten (give a new file)", file=sys.stderr)
+            return 2
     if not is_case_set(args.cases):
         print(f"error: {args.cases} is not a case set (scripts/build_case_set.py builds one)", file=sys.stderr)
         return 2

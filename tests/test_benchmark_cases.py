@@ -251,26 +251,35 @@ def test_diagnosis_ends_with_the_compared_bones(small_case_set):
 def test_diagnosis_script_refuses_bad_input_in_one_line(small_case_set, tmp_path, capsys):
     """scripts/diagnose_case_set.py: a folder that is not a case set and a selection that matches no case
     each get one line naming what is wrong, exit code 2, and no CSV written."""
+    out = tmp_path / "stages.csv"
+    for argv, says in (([tmp_path / "nothing"], "is not a case set"),
+                       ([small_case_set, "--only", "no-such-case"], "no case of")):
+        assert _run_script("diagnose_case_set", [*argv, "--csv", out]) == 2
+        _one_line_error(capsys, says)
+        assert not out.exists()
+
+
+def _run_script(name: str, argv) -> int:
+    """``scripts/NAME.py``'s main() run with ``argv`` (sys.argv restored after); its exit code."""
     import importlib.util
     import sys
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "scripts" / "diagnose_case_set.py"
-    spec = importlib.util.spec_from_file_location("diagnose_case_set", path)
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py")
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
-    out = tmp_path / "stages.csv"
-    for argv, says in (([str(tmp_path / "nothing")], "is not a case set"),
-                       ([str(small_case_set), "--only", "no-such-case"], "no case of")):
-        old = sys.argv
-        sys.argv = ["diagnose_case_set.py", *argv, "--csv", str(out)]
-        try:
-            assert script.main() == 2
-        finally:
-            sys.argv = old
-        err = capsys.readouterr().err.strip().splitlines()
-        assert says in err[-1] and err[-1].startswith("error:") and "Traceback" not in "".join(err)
-        assert not out.exists()
+    old = sys.argv
+    sys.argv = [f"{name}.py", *map(str, argv)]
+    try:
+        return script.main()
+    finally:
+        sys.argv = old
+
+
+def _one_line_error(capsys, says: str) -> None:
+    """The last line on stderr names what is wrong, as an error, and no traceback was printed."""
+    err = capsys.readouterr().err.strip().splitlines()
+    assert says in err[-1] and err[-1].startswith("error:") and "Traceback" not in "".join(err)
 
 
 def test_seen_shank_points_counts_in_the_true_tibia_frame():
@@ -563,11 +572,9 @@ def test_skin_floor_recovers_a_known_motion_of_the_leg(small_case_set):
 def test_skin_floor_on_the_case_set_and_its_script(small_case_set, tmp_path, capsys):
     """The floor is measured on the cases whose view was rendered at 0 mm too (here the paper's at 1 mm),
     is nonzero (the mismatch field moves the registration) and comes out of the script as tables; a case
-    set without such twins and a CSV that is not knee compare's each get one line naming what is wrong."""
-    import importlib.util
+    set without such twins, a CSV that is not knee compare's, --plot without --compare and an output file
+    that exists each get one line naming what is wrong (the file left as it was)."""
     import shutil
-    import sys
-    from pathlib import Path
 
     from knee.app.experiments.case_set import build_case_set
     from knee.app.experiments.skin_floor import skin_floor
@@ -578,21 +585,11 @@ def test_skin_floor_on_the_case_set_and_its_script(small_case_set, tmp_path, cap
     r = rows[0]
     # the flexion error is the separate registration's (the joined one keeps the true relative pose: exactly 0)
     assert 0.05 < r.separate_mm < 6.0 and 0.05 < r.joined_mm < 6.0 and 1e-3 < abs(r.separate_flexion_error_deg) < 5.0
-    path = Path(__file__).resolve().parents[1] / "scripts" / "skin_mismatch_floor.py"
-    spec = importlib.util.spec_from_file_location("skin_mismatch_floor", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
     compare = tmp_path / "compare.csv"
     compare.write_text("case,method,femur_footprints_mm,tibia_footprints_mm\n"
                        "phantom-mechanism-40-1mm-paper,links,1.0,3.0\n")
-    old = sys.argv
     png = tmp_path / "floor.png"
-    sys.argv = ["skin_mismatch_floor.py", str(small_case_set), "--compare", str(compare), "--plot", str(png),
-                "--tissue"]
-    try:
-        assert script.main() == 0
-    finally:
-        sys.argv = old
+    assert _run_script("skin_mismatch_floor", [small_case_set, "--compare", compare, "--plot", png, "--tissue"]) == 0
     assert png.stat().st_size > 0
     out = capsys.readouterr().out
     line, = [ln for ln in out.splitlines() if ln.startswith("| 1 mm | 1 | ")]
@@ -604,16 +601,14 @@ def test_skin_floor_on_the_case_set_and_its_script(small_case_set, tmp_path, cap
         skin_floor(only_1mm)
     bad = tmp_path / "bad.csv"
     bad.write_text("a,b\n1,2\n")
-    for argv, says in (([str(only_1mm)], "rendered at 0 mm"), ([str(small_case_set), "--compare", str(bad)],
-                                                              "not a knee compare CSV"),
-                       ([str(small_case_set), "--plot", str(tmp_path / "no.png")], "--plot needs --compare")):
-        sys.argv = ["skin_mismatch_floor.py", *argv]
-        try:
-            assert script.main() == 2
-        finally:
-            sys.argv = old
-        err = capsys.readouterr().err.strip().splitlines()
-        assert says in err[-1] and err[-1].startswith("error:") and "Traceback" not in "".join(err)
+    before = png.read_bytes()
+    for argv, says in (([only_1mm], "rendered at 0 mm"), ([small_case_set, "--compare", bad], "not a knee compare CSV"),
+                       ([small_case_set, "--plot", tmp_path / "no.png"], "--plot needs --compare"),
+                       ([small_case_set, "--compare", compare, "--plot", png], "exists"),
+                       ([small_case_set, "--csv", bad], "exists")):
+        assert _run_script("skin_mismatch_floor", argv) == 2
+        _one_line_error(capsys, says)
+    assert png.read_bytes() == before and bad.read_text() == "a,b\n1,2\n"
     shutil.rmtree(tmp_path / "sub")
 
 

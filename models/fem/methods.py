@@ -179,7 +179,15 @@ class Reconstruction:
         the two bones' motions."""
         if self.grid_x is None or self.bone_nodes is None:
             return self.locate(bone, rest_points)
-        return transform_points(self.bone_pose(bone, self.bone_nodes[bone]), np.asarray(rest_points, float))
+        return transform_points(self.rigid_pose(bone), np.asarray(rest_points, float))
+
+    def rigid_pose(self, bone: str) -> np.ndarray:
+        """The bone's rigid pose (4, 4; model frame at rest to the world) that :meth:`bone_points` carries
+        points by: for the FEM methods the least-squares fit of its tetrahedra's nodes, for the mechanism
+        alone its pose."""
+        if self.grid_x is not None and self.bone_nodes is not None:
+            return self.bone_pose(bone, self.bone_nodes[bone])
+        return self.rigid[bone]
 
     def bone_pose(self, bone: str, rest_nodes) -> np.ndarray:
         """The rigid pose (4, 4) that best carries a bone's rest points ``rest_nodes`` (P, 3; model frame at

@@ -407,9 +407,7 @@ def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T
                              shank_points_true=seen_shank_points(anatomy, pts, T_cam_tibia))
     staged = camera_stage_errors(anatomy, prior, recon, T_cam_world, T_cam_femur, T_cam_tibia) if stages else []
     if on_result is not None:
-        fem = recon.grid_x is not None and recon.bone_nodes is not None
-        estimate = {b: T_cam_world @ (recon.bone_pose(b, recon.bone_nodes[b]) if fem else recon.rigid[b])
-                    for b in ("femur", "tibia")}
+        estimate = {b: T_cam_world @ recon.rigid_pose(b) for b in ("femur", "tibia")}
         on_result(case, anatomy, method, pts, {"femur": T_cam_femur, "tibia": T_cam_tibia}, estimate, row)
     return row, staged
 

@@ -155,8 +155,7 @@ def camera_stage_errors(anatomy: KneeAnatomy, prior: Mechanism, recon, T_cam_wor
             Tw, rel = recon.stages[k]
             poses.append((k, T_cam_world @ Tw, T_cam_world @ Tw @ rel @ invert_poses(T_tib)))
     if recon.grid_x is not None and recon.bone_nodes is not None:
-        poses.append(("final", T_cam_world @ recon.bone_pose("femur", recon.bone_nodes["femur"]),
-                      T_cam_world @ recon.bone_pose("tibia", recon.bone_nodes["tibia"])))
+        poses.append(("final", T_cam_world @ recon.rigid_pose("femur"), T_cam_world @ recon.rigid_pose("tibia")))
     out = []
     for name, Tf, Tt in poses:
         e = pose_errors(tg, T_cam_femur, T_cam_tibia, Tf, Tt)
