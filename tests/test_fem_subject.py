@@ -85,6 +85,21 @@ def test_bad_subject_input_is_one_line_and_writes_nothing(case, tmp_path):
     bad.write_text("1 0 0 0\n0 2 0 0\n0 0 1 0\n0 0 0 1\n")
     assert_clean_error(run("fem", d, "--prior", tmp / "prior.toml", "--cloud", tmp / "cloud.ply", "--initial-pose", bad,
                            "--out", out), "not a rotation")
+    # files that are not what they claim, a missing prior, two inputs: one line on stderr, nothing else
+    # (open3d's readers print their own complaints unless kept quiet)
+    not_ply, not_png = tmp_path / "cloud.ply", tmp_path / "depth.png"
+    not_ply.write_text("x y z\n1 2 3\n")
+    not_png.write_text("not an image\n")
+    for argv, fragment in [
+            (("--prior", tmp / "prior.toml", "--cloud", not_ply), "not a PLY file"),
+            (("--prior", tmp / "prior.toml", "--depth", not_png, "--intrinsics", "500,500,32,24"),
+             "not a readable depth image"),
+            (("--prior", tmp_path / "missing.toml", "--cloud", tmp / "cloud.ply"), "--prior: "),
+            (("--prior", tmp / "prior.toml", "--cloud", tmp / "cloud.ply", "--depth", img, "--intrinsics",
+              "500,500,32,24"), "not both")]:
+        p = run("fem", d, *argv, "--out", out)
+        assert_clean_error(p, fragment)
+        assert len(p.stderr.strip().splitlines()) == 1, p.stderr
     assert not out.exists()
 
 

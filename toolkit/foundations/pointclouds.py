@@ -58,10 +58,11 @@ def read_depth_image(path) -> np.ndarray:
         if depth.dtype.kind not in "iuf":
             raise KneeInputError(f"{path}: a depth image must hold numbers, not {depth.dtype}")
     else:
-        img = o3d.io.read_image(str(path))
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):  # its warning is ours to say
+            img = o3d.io.read_image(str(path))
         depth = np.asarray(img)
-        if depth.size == 0:
-            raise KneeInputError(f"{path}: not a readable depth image")
+        if depth.size == 0 or depth.ndim == 0:
+            raise KneeInputError(f"{path}: not a readable depth image (a 16-bit PNG or a 2-D .npy array)")
     if depth.ndim != 2:
         raise KneeInputError(f"{path}: a depth image must be 2-D, got shape {depth.shape}")
     return depth.astype(float)
@@ -79,7 +80,12 @@ def load_point_cloud(path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise KneeInputError(f"{path}: no such point-cloud file")
-    pc = o3d.io.read_point_cloud(str(path))
+    if path.suffix.lower() == ".ply":
+        with open(path, "rb") as f:
+            if f.read(3) != b"ply":  # open3d's PLY reader would print its own complaint first
+                raise KneeInputError(f"{path}: not a PLY file (it does not start with 'ply')")
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):  # its warning is ours to say
+        pc = o3d.io.read_point_cloud(str(path))
     pts = np.asarray(pc.points, dtype=float)
     if len(pts) == 0:
         raise KneeInputError(f"{path}: no points read (unsupported or empty file)")

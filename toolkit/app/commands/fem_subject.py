@@ -61,7 +61,9 @@ def _read_pose(path) -> np.ndarray:
 
 def _points(args):
     """(points (P, 3) camera frame, depth image or None, K or None)."""
-    if bool(args.cloud) == bool(args.depth):
+    if args.cloud and args.depth:
+        raise KneeInputError("give one measured input: --cloud FILE or --depth FILE, not both")
+    if not (args.cloud or args.depth):
         raise KneeInputError("give a measured cloud or depth image: --cloud FILE or --depth FILE --intrinsics "
                              "fx,fy,cx,cy")
     if args.cloud:
@@ -96,7 +98,10 @@ def run(args) -> int:
     method = args.method or "links"
     points_cam, depth, K = _points(args)
     subject = load_subject(subject_dir)
-    prior = Mechanism(load_model(args.prior))
+    try:
+        prior = Mechanism(load_model(args.prior))
+    except KneeInputError as e:
+        raise KneeInputError(f"--prior: {e}") from None
     say(f"knee fem: the association model of subject {subject.name} ...")
     t0 = time.perf_counter()
     anatomy = subject_anatomy(subject, prior.params)
