@@ -161,6 +161,9 @@ def test_argparse_errors_exit_2():
     p = run("sweep")
     assert p.returncode == 2 and "Traceback" not in p.stderr
     assert p.stderr.count("\n") == 1 and p.stderr.startswith("knee: error: sweep: ")
+    # an unknown option after a command is parsed by the top-level parser: its line names no command twice
+    p = run("sweep", "volunteer", "--start", 0)
+    assert p.returncode == 2 and p.stderr == "knee: error: unrecognized arguments: --start 0\n"
 
 
 def test_the_installed_script_runs():

@@ -69,7 +69,8 @@ class _Parser(argparse.ArgumentParser):
     """argparse with its usage errors as one ``knee: error:`` line and exit code 2."""
 
     def error(self, message):  # noqa: D401 - argparse's hook
-        self.exit(EXIT_BAD_INPUT, f"knee: error: {self.prog.split()[-1] if ' ' in self.prog else 'knee'}: {message}\n")
+        where = f"{self.prog.split()[-1]}: " if " " in self.prog else ""  # the subcommand, if any
+        self.exit(EXIT_BAD_INPUT, f"knee: error: {where}{message}\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
