@@ -28,6 +28,23 @@ def test_bone_forces_directions_and_magnitudes(knee_model):
     assert np.linalg.norm(held.forces(m.grid.X).sum(axis=0)) == pytest.approx(6000.0, rel=1e-9)
 
 
+def test_bone_forces_turn_with_the_bones_past_45_degrees(knee_model):
+    """The whole knee turned 60 deg about the medio-lateral axis: each force turns with it. Picked against
+    the rest axes themselves, the tibia's long axis (now 30 deg from the rest antero-posterior axis) would
+    be taken for its antero-posterior one and F4 would push along the shaft."""
+    from scipy.spatial.transform import Rotation
+
+    m = knee_model
+    bf = BoneForces(m.femur, m.tibia)
+    bf.forces(m.grid.X)
+    rest = dict(bf.directions)
+    R = Rotation.from_euler("z", 60, degrees=True).as_matrix()
+    c = m.grid.X.mean(axis=0)
+    bf.forces((m.grid.X - c) @ R.T + c)
+    for name in ("F1", "F2", "F3", "F4"):
+        assert bf.directions[name] @ (R @ rest[name]) > 0.999, name
+
+
 def test_surface_forces_and_the_adaptive_reference_distance(knee_model):
     m = knee_model
     skin = m.skin_vertices

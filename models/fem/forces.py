@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from knee.foundations.geometry import principal_axes as _principal_axes
+from knee.foundations.geometry import principal_axes as _principal_axes, rigid_register
 from knee.models.fem.mapping import TrilinearMapping
 
 PAPER_BONE_FORCES = (9000.0, 23000.0, 3000.0, 6000.0)
@@ -37,8 +37,12 @@ class BoneForces:
 
     The principal axes are recomputed from the bones' current points at every call, so the forces
     turn with the bones (the paper computes them by PCA of the bone models; recomputing keeps F4
-    flexing the knee as the tibia turns). ``femur=False`` drops F1-F3, for a model whose thigh is held
-    (they would only push against the holder).
+    flexing the knee as the tibia turns). Which current axis is which is decided against the rest axis
+    turned by the bone's current rotation (the least-squares rigid fit of its nodes), not against the
+    rest axis itself: past 45 deg of flexion the tibia's long axis is closer to its rest antero-posterior
+    axis than its own antero-posterior axis is, and F4 had turned along the shaft there, so that the knee
+    sprang back and was kicked forward again in a saw-tooth that never passed about 72 deg. ``femur=False``
+    drops F1-F3, for a model whose thigh is held (they would only push against the holder).
     """
 
     def __init__(self, femur, tibia, magnitudes=PAPER_BONE_FORCES, scale: float = 1.0, n_points: int = 5,
@@ -61,6 +65,11 @@ class BoneForces:
         self.directions = {}
 
     @staticmethod
+    def _rotation(X, x) -> np.ndarray:
+        """The rotation (3, 3) of the least-squares rigid fit taking rest nodes ``X`` to ``x``."""
+        return rigid_register(X, x)[0][:3, :3]
+
+    @staticmethod
     def _axis(axes, ref):
         a = axes[np.argmax(np.abs(axes @ ref))]
         return a * np.sign(a @ ref)
@@ -69,10 +78,12 @@ class BoneForces:
         F1, F2, F3, F4 = self.F
         pf, pt = self.femur.bone_positions(x), self.tibia.bone_positions(x)
         af, at_ = principal_axes(pf), principal_axes(pt)
-        # which current axis is antero-posterior / long: the one closest to the rest one (sign kept)
-        ap_f = self._axis(af, self._ap_f0)
-        long_f = self._axis(af, self._long_f0)
-        ap_t = self._axis(at_, self._ap_t0)
+        # which current axis is antero-posterior / long: the one closest to the rest one as the bone has
+        # turned it (sign kept)
+        Rf, Rt = self._rotation(self.femur.el.X, pf), self._rotation(self.tibia.el.X, pt)
+        ap_f = self._axis(af, Rf @ self._ap_f0)
+        long_f = self._axis(af, Rf @ self._long_f0)
+        ap_t = self._axis(at_, Rt @ self._ap_t0)
         ff = np.zeros_like(pf)
         ff[self.shaft_f] += F1 * ap_f / self.n
         ff[self.fossa] += -F2 * ap_f / self.n - F3 * long_f / self.n

@@ -150,8 +150,9 @@ class Reconstruction:
     #: methods ii/iii: the femur's placement along the thigh's axis (:func:`place_along_thigh`), or None
     axial: "AxialPlacement | None" = None
     # the paper's method: why its bone-force phase ended ("angle": femur-tibia angle below 100 deg, the
-    # paper's criterion; "stalled": the knee stopped flexing under the forces; "cap": a third of the
-    # step budget), the steps and the flexion it reached, and the run's history per step
+    # paper's criterion; "stalled": the knee stopped flexing under the forces; "crushed": the next step
+    # would have inverted more of the tissue's cells than a run may carry, so it was taken back; "cap": a
+    # third of the step budget), the steps and the flexion it reached, and the run's history per step
     steps_bone_phase: int = 0
     bone_phase_end: str = ""
     bone_phase_flexion_deg: float = float("nan")
@@ -230,6 +231,10 @@ def bone_phase_note(r: Reconstruction) -> str:
     if r.bone_phase_end == "stalled":
         return (f"bone forces stopped at {r.bone_phase_flexion_deg:.1f} deg flexion after {r.steps_bone_phase} steps: "
                 f"the knee stopped flexing under them (the paper's femur-tibia angle below 100 deg not reached)")
+    if r.bone_phase_end == "crushed":
+        return (f"bone forces stopped at {r.bone_phase_flexion_deg:.1f} deg flexion after {r.steps_bone_phase} steps: "
+                f"the next step crushed more than {100 * MAX_INVERTED_FRACTION:.0f} % of the tissue's cells (the paper's "
+                "femur-tibia angle below 100 deg not reached)")
     if r.bone_phase_end == "cap":
         return (f"bone forces stopped at {r.bone_phase_flexion_deg:.1f} deg flexion at the step cap "
                 f"({r.steps_bone_phase} steps; femur-tibia angle below 100 deg not reached)")
@@ -254,7 +259,7 @@ def check_state(model: AssociationModel, step: int, x0_extent: float) -> int:
     model.inverted_cells = inverted
     if inverted > MAX_INVERTED_FRACTION * alive.sum():
         raise DivergenceError(f"the FEM diverged at step {step}: {inverted} of {int(alive.sum())} grid cells "
-                              f"inverted", step)
+                              f"inverted", step, inverted=True)
     return inverted
 
 
@@ -513,14 +518,29 @@ def paper_method(model: AssociationModel, points, bone_force_scale: float = 1.0,
     try:
         for k in range(max_steps):
             if phase == "bone":
+                x_prev, v_prev = s.x.copy(), s.v.copy()
                 info = s.step(bone.forces)
-                inverted = check_state(model, k, extent)
-                bone_steps += 1
+                crushed = False
+                try:
+                    inverted = check_state(model, k, extent)
+                except DivergenceError as e:
+                    if not (e.inverted and bone_steps > 0):
+                        raise
+                    # the bone forces have crushed the tissue behind the knee (more cells inverted than a
+                    # run may carry): the bone phase ends at the step before, as flexed as the grid allows
+                    s.x[:], s.v[:] = x_prev, v_prev
+                    s.invalidate()
+                    inverted = check_state(model, k, extent)
+                    crushed = True
+                if not crushed:
+                    bone_steps += 1
                 flex, between = knee_angles(model)
-                bone_flexions.append(flex)
+                if not crushed:
+                    bone_flexions.append(flex)
                 stalled = bone_phase_stalled(bone_flexions, bone_stall_steps, bone_stall_deg)
-                if between < 100.0 or stalled or bone_steps >= max_steps // 3:
-                    bone_end = "angle" if between < 100.0 else ("stalled" if stalled else "cap")
+                if crushed or between < 100.0 or stalled or bone_steps >= max_steps // 3:
+                    bone_end = ("crushed" if crushed else "angle" if between < 100.0 else
+                                "stalled" if stalled else "cap")
                     bone_flex = flex
                     phase = "surface"
                     if rebase_after_bones:
@@ -557,7 +577,7 @@ def paper_method(model: AssociationModel, points, bone_force_scale: float = 1.0,
                        invert_poses(T_reg), model.grid, s.x.copy(), icp_fitness=fitness, steps_bone_phase=bone_steps,
                        bone_phase_end=bone_end, bone_phase_flexion_deg=bone_flex,
                        history={k: np.asarray(v) for k, v in hist.items()}, bone_nodes=bone_rest_nodes(model))
-    if bone_end in ("stalled", "cap"):  # the paper's criterion not reached: say so
+    if bone_end in ("stalled", "cap", "crushed"):  # the paper's criterion not reached: say so
         r.notes.append(bone_phase_note(r))
     return r
 

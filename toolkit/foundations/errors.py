@@ -56,8 +56,10 @@ class AssemblyError(KneeNumericalError):
 
 
 class DivergenceError(KneeNumericalError):
-    """A simulation stopped: non-finite values, inverted elements or an energy blow-up at ``step``."""
+    """A simulation stopped: non-finite values, inverted elements or an energy blow-up at ``step``;
+    ``inverted``: whether it stopped for inverted elements (the state is finite, the mesh crushed)."""
 
-    def __init__(self, message: str, step: int):
+    def __init__(self, message: str, step: int, inverted: bool = False):
         super().__init__(message)
         self.step = step
+        self.inverted = inverted
