@@ -44,6 +44,9 @@ COARSE_ICP_ITERATIONS = 15
 #: Fewest points, and fewest below the knee (shank), to attempt an estimate.
 MIN_POINTS = 500
 MIN_SHANK_POINTS = 150
+#: How near the shank's skin (mm), posed at a candidate flexion, a point of the roughly placed cloud counts as
+#: the shank's when the cloud shows little below the knee (the rough placement is good to a few mm).
+SHANK_SEARCH_MM = 10.0
 #: Fewest registered points on the shank's own skin (nearest to it, within 5 mm) below which the estimate
 #: warns that the flexion is seen only through the knee's outline.
 MIN_SEEN_SHANK = 100
@@ -295,12 +298,18 @@ def estimate_flexion(skin: SkinModel, points, T_init=None, coarse_step_deg: floa
     local = transform_points(init, pts)
     sk = skin
     lo, hi = sk.mech.assembly_range
-    # points of the shank: below the knee in the femur frame, in front of nothing else
+    a0, a1 = max(lo, math.radians(-5.0)), min(hi, math.radians(150.0))
+    # points of the shank: below the knee in the femur frame; a knee flexed to about 90 deg or more carries
+    # its shank behind the knee rather than below it, so failing that, the points the shank's own skin
+    # explains at some flexion of the prior's range (every 30 deg)
     shank = int(np.sum(local[:, 1] < sk.shank_below))
     if shank < MIN_SHANK_POINTS:
+        shank = max(shank, max(seen_shank_points(sk.at(a), local, within_mm=SHANK_SEARCH_MM)
+                               for a in np.arange(a0, a1 + 1e-9, math.radians(30.0))))
+    if shank < MIN_SHANK_POINTS:
         raise KneeInputError(f"the point cloud covers too little of the shank to estimate flexion ({shank} points "
-                             f"below the knee; at least {MIN_SHANK_POINTS} needed)")
-    a0, a1 = max(lo, math.radians(-5.0)), min(hi, math.radians(150.0))
+                             f"below the knee or on the shank's skin at any flexion; at least {MIN_SHANK_POINTS} "
+                             "needed)")
     grid = np.arange(a0, a1 + 1e-9, math.radians(coarse_step_deg))
     scores = {}
     best = (np.inf, None, None, 0.0)

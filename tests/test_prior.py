@@ -98,6 +98,24 @@ def test_point_clouds_that_cannot_show_the_flexion_are_refused(volunteer, scene)
         estimate_flexion(SkinModel(volunteer, ph), pts[pts[:, 1] > 0.0])
 
 
+def test_a_shank_behind_the_knee_counts_as_seen(volunteer):
+    """Flexed past 90 deg the shank runs behind the knee, not below it: a view with nothing below the knee's
+    height still shows the flexion (the shank's skin posed at some flexion explains its points), where
+    counting only the points below the knee refused it."""
+    ph = build_phantom(volunteer.params)
+    sk = SkinModel(volunteer, ph)
+    cam = default_camera()
+    tf, pf, _ = volunteer.solve(math.radians(97.3))
+    skin = ph.skin(joint_to_pose(tf), joint_to_pose(pf))
+    pts = backproject(DepthNoise().apply(render_depth(skin.vertices, skin.faces, cam), np.random.default_rng(3)),
+                      cam.K, cam.T_world_cam)
+    above = pts[pts[:, 1] >= sk.shank_below]
+    assert len(above) < len(pts) and not np.any(above[:, 1] < sk.shank_below)
+    est = estimate_flexion(sk, above)
+    assert abs(math.degrees(est.flexion) - 97.3) < 1.0
+    assert not any("shank is hardly seen" in w for w in est.warnings)
+
+
 def test_a_knee_beyond_the_prior_range_is_flagged(volunteer, scene):
     """A prior that stops assembling before the true flexion: the estimate pegs at its range end and says so."""
     from knee.models.mechanism import Mechanism
