@@ -233,16 +233,16 @@ def test_a_diverging_surface_phase_falls_back_to_the_initialisation(model, volun
     assert abs(r.flexion_deg - ref.flexion_deg) < 1e-3
 
 
-def test_papers_method_at_its_best_reading_holds_the_femur_and_keeps_the_bone_phases_flexion(volunteer):
+def test_papers_method_held_and_rebased_holds_the_femur_and_keeps_the_bone_phases_flexion(volunteer):
     """The literal reading: once the bone forces stop, the tissue's stored energy returns the knee towards its
     scanned extension (here the cloud is the skin at extension, so the surface forces pull the same way).
-    The best reading (PAPER_AT_BEST): the femur's nodes held exactly, and the bone phase's configuration the
-    tissue's reference, so the knee stays near the flexion the bone forces reached against the same cloud."""
-    from knee.models.fem.methods import PAPER_AT_BEST, paper_method
+    Held and rebased: the femur's nodes held exactly, and the bone phase's configuration the tissue's
+    reference, so the knee stays near the flexion the bone forces reached against the same cloud."""
+    from knee.models.fem.methods import paper_method
     from knee.models.fem.scene import bone_cell_masks
 
     runs = {}
-    for name, opts in (("literal", {}), ("best", PAPER_AT_BEST)):
+    for name, opts in (("literal", {}), ("best", {"hold_femur": True, "rebase_after_bones": True})):
         m = build_association_model(volunteer)
         X = m.grid.X.copy()
         femur = bone_cell_masks(m.grid, m.femur, m.tibia)[0]
