@@ -65,11 +65,6 @@ class BoneForces:
         self.directions = {}
 
     @staticmethod
-    def _rotation(X, x) -> np.ndarray:
-        """The rotation (3, 3) of the least-squares rigid fit taking rest nodes ``X`` to ``x``."""
-        return rigid_register(X, x)[0][:3, :3]
-
-    @staticmethod
     def _axis(axes, ref):
         a = axes[np.argmax(np.abs(axes @ ref))]
         return a * np.sign(a @ ref)
@@ -80,7 +75,8 @@ class BoneForces:
         af, at_ = principal_axes(pf), principal_axes(pt)
         # which current axis is antero-posterior / long: the one closest to the rest one as the bone has
         # turned it (sign kept)
-        Rf, Rt = self._rotation(self.femur.el.X, pf), self._rotation(self.tibia.el.X, pt)
+        Rf = rigid_register(self.femur.el.X, pf)[0][:3, :3]  # each bone's rotation from rest
+        Rt = rigid_register(self.tibia.el.X, pt)[0][:3, :3]
         ap_f = self._axis(af, Rf @ self._ap_f0)
         long_f = self._axis(af, Rf @ self._long_f0)
         ap_t = self._axis(at_, Rt @ self._ap_t0)

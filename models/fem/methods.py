@@ -534,12 +534,11 @@ def paper_method(model: AssociationModel, points, bone_force_scale: float = 1.0,
                     # run may carry): the bone phase ends at the step before, as flexed as the grid allows
                     s.x[:], s.v[:] = x_prev, v_prev
                     s.invalidate()
-                    inverted = check_state(model, k, extent)
+                    inverted = check_state(model, k, extent)  # the step before's count, kept on the model
                     crushed = True
-                if not crushed:
-                    bone_steps += 1
                 flex, between = knee_angles(model)
                 if not crushed:
+                    bone_steps += 1
                     bone_flexions.append(flex)
                 stalled = bone_phase_stalled(bone_flexions, bone_stall_steps, bone_stall_deg)
                 if crushed or between < 100.0 or stalled or bone_steps >= max_steps // 3:

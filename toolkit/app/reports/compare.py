@@ -25,6 +25,7 @@ import rerun.blueprint as rrb  # noqa: E402
 from knee.app.experiments.cases import CompareRow, FloorRow, MethodResult  # noqa: E402
 from knee.foundations import recording as R  # noqa: E402
 from knee.foundations.conventions import joint_to_pose  # noqa: E402
+from knee.foundations.errors import KneeInputError  # noqa: E402
 
 METHOD_LABELS = {"paper": "(i) paper: bone forces + surface forces",
                  "init": "(ii) prior as initialisation",
@@ -92,6 +93,28 @@ def write_csv(rows: list[CompareRow], path, extra=()) -> None:
                 d = {k: (v if k in ("method", "camera", "flexion_true_deg", "failed") + tuple(extra) else "")
                      for k, v in d.items()}
             w.writerow({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in d.items()})
+
+
+def read_csv(path, row_type=CompareRow) -> list:
+    """The rows :func:`write_csv` wrote (``row_type``: :class:`CompareRow` or a subclass naming the extra
+    columns), each field converted back to its type (a failed run's empty figures to their defaults);
+    :class:`KneeInputError` naming the file when it lacks a column of ``row_type``."""
+    fields = {f.name: f for f in dataclasses.fields(row_type)}
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            table = list(csv.DictReader(fh))
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise KneeInputError(f"{path}: not a readable comparison table ({e})") from None
+    missing = sorted(set(fields) - set(table[0] if table else ()))
+    if missing:
+        raise KneeInputError(f"{path}: not a comparison table of these rows (missing {', '.join(missing)})")
+    convert = {"float": float, "int": lambda v: int(float(v)), "bool": lambda v: v == "True", "str": str}
+    out = []
+    for rec in table:
+        kw = {k: convert[f.type if isinstance(f.type, str) else f.type.__name__](rec[k])
+              for k, f in fields.items() if rec[k] != ""}
+        out.append(row_type(**kw))
+    return out
 
 
 def floor_markdown(floor: list[FloorRow]) -> str:
