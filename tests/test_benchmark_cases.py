@@ -711,3 +711,35 @@ def test_compare_tables_read_back_and_pool_across_case_sets(tmp_path, capsys):
     (tmp_path / "x.csv").write_text("a,b\n1,2\n")
     assert _run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "x.csv"]) == 2
     _one_line_error(capsys, "not a comparison table")
+
+
+def test_median_interval_resamples_whole_poses():
+    """The bootstrap interval of the median: its all-at-once weighted median equals the median of each
+    resample written out case by case (the same draws, looped); cases that repeat their pose's value (three
+    views of one pose) give the interval of the poses alone, where taking the views as independent would
+    narrow it; and the case's pose drops the camera and the skin mismatch from its id."""
+    from knee.app.experiments.case_set import CaseRow
+    from knee.app.reports.case_set import median_interval, pose_of
+
+    rng = np.random.default_rng(3)
+    values = rng.gamma(2.0, 1.5, size=23)
+    clusters = rng.integers(0, 9, size=23)
+    lo, hi = median_interval(values, clusters, resamples=300, level=0.9, seed=5)
+    # the same draws, each resample's cases written out and their median taken by numpy
+    labels = np.unique(clusters.astype(str))
+    counts = np.random.default_rng(5).multinomial(len(labels), np.full(len(labels), 1 / len(labels)), size=300)
+    meds = [np.median(np.concatenate([values[clusters.astype(str) == lab].repeat(k) for lab, k in zip(labels, c)]))
+            for c in counts]
+    assert (lo, hi) == pytest.approx((np.quantile(meds, 0.05), np.quantile(meds, 0.95)), abs=1e-12)
+    assert lo < np.median(values) < hi
+    # three views per pose, each with its pose's value: the poses' interval, not the views'
+    poses = rng.normal(2.5, 1.0, size=12)
+    views = np.repeat(poses, 3)
+    by_pose = median_interval(views, np.repeat(np.arange(12), 3))
+    assert by_pose == pytest.approx(median_interval(poses, np.arange(12)), abs=1e-12)
+    by_view = median_interval(views, np.arange(36))
+    assert by_view[1] - by_view[0] < 0.8 * (by_pose[1] - by_pose[0])
+    assert median_interval([2.0, 2.0, float("nan")], ["a", "b", "c"]) == (2.0, 2.0)
+    row = CaseRow("links", "paper", 30.0, case="phantom-measured-30-1mm-paper", mismatch_mm=1.0)
+    assert pose_of(row) == "phantom-measured-30"
+    assert pose_of(CaseRow("links", "lateral", 30.0, case="vh-mechanism-60-0.5mm-lateral", mismatch_mm=0.5)) == "vh-mechanism-60"
