@@ -732,6 +732,15 @@ def test_median_interval_resamples_whole_poses():
             for c in counts]
     assert (lo, hi) == pytest.approx((np.quantile(meds, 0.05), np.quantile(meds, 0.95)), abs=1e-12)
     assert lo < np.median(values) < hi
+    # a set large enough to be resampled in chunks (8000 cases: 250 resamples at a time) gives the same
+    big, groups = rng.normal(size=8000), rng.integers(0, 2500, size=8000)
+    labels = np.unique(groups.astype(str))
+    counts = np.random.default_rng(1).multinomial(len(labels), np.full(len(labels), 1 / len(labels)), size=300)
+    members = {lab: big[groups.astype(str) == lab] for lab in labels}
+    meds = [np.median(np.concatenate([members[lab].repeat(k) for lab, k in zip(labels, c)]))
+            for c in counts]
+    assert median_interval(big, groups, resamples=300, seed=1) == pytest.approx(
+        (np.quantile(meds, 0.025), np.quantile(meds, 0.975)), abs=1e-12)
     # three views per pose, each with its pose's value: the poses' interval, not the views'
     poses = rng.normal(2.5, 1.0, size=12)
     views = np.repeat(poses, 3)

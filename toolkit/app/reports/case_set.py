@@ -72,11 +72,14 @@ def median_interval(values, clusters, resamples: int = BOOTSTRAP_RESAMPLES, leve
     n = int(g.max()) + 1
     rng = np.random.default_rng(seed)
     counts = rng.multinomial(n, np.full(n, 1.0 / n), size=resamples)  # (R, G): how often each cluster is drawn
-    cw = np.cumsum(counts[:, g], axis=1)  # (R, V) cumulative weights over the sorted values
-    half = cw[:, -1:] / 2.0
-    lo = np.argmax(cw >= half, axis=1)  # the lower and upper middle values of each resample's multiset
-    hi = np.argmax(cw > half, axis=1)
-    med = 0.5 * (v[lo] + v[hi])
+    med = np.empty(resamples)
+    chunk = max(1, 2_000_000 // v.size)  # resamples at a time, so that a large set stays within memory
+    for a in range(0, resamples, chunk):
+        cw = np.cumsum(counts[a:a + chunk, g], axis=1)  # cumulative weights over the sorted values
+        half = cw[:, -1:] / 2.0
+        lo = np.argmax(cw >= half, axis=1)  # the lower and upper middle values of each resample's multiset
+        hi = np.argmax(cw > half, axis=1)
+        med[a:a + chunk] = 0.5 * (v[lo] + v[hi])
     a = (1.0 - level) / 2.0
     return float(np.quantile(med, a)), float(np.quantile(med, 1.0 - a))
 
