@@ -2,7 +2,7 @@
 from a seed, then run it with ``knee compare CASE_SET --out OUT``.
 
     .venv/bin/python scripts/build_case_set.py --out cases [--seed 0] [--data ../shared/data]
-        [--anatomies phantom,visible-human-male] [--families mechanism+deviation,measured]
+        [--anatomies phantom,visible-human-male] [--families mechanism+deviation,measured] [--patella]
 
 Without the data folder, only the phantom's mechanism cases are built. The cases, the truth and what the
 methods are given: :mod:`knee.app.experiments.case_set`. About 2-5 min on 2 cores (the truth skins).
@@ -23,6 +23,8 @@ def main() -> int:
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
     ap.add_argument("--anatomies", default="phantom,visible-human-male")
     ap.add_argument("--families", default="mechanism+deviation,measured")
+    ap.add_argument("--patella", action="store_true",
+                    help="the truth's tissue holds the subject's patella, moved by the truth mechanism's PF motion")
     args = ap.parse_args()
     from knee.app.experiments.case_set import build_case_set
     from knee.foundations.errors import KneeError
@@ -39,7 +41,7 @@ def main() -> int:
                            tuple(a.strip() for a in args.anatomies.split(",") if a.strip()),
                            tuple(f.strip() for f in args.families.split(",") if f.strip()),
                            progress=lambda s: print(f"[{time.perf_counter() - t0:5.0f} s] {s}", file=sys.stderr,
-                                                    flush=True))
+                                                    flush=True), patella=args.patella)
     except KneeError as e:
         print(f"build_case_set: error: {e}", file=sys.stderr)
         return 2

@@ -1,6 +1,7 @@
 """The benchmark's independent truth: the tetrahedral tissue model (closed forms, finite differences,
 invariances), the skin mismatch field, and the case set (its truth, its rough poses, its runner)."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -752,3 +753,60 @@ def test_median_interval_resamples_whole_poses():
     row = CaseRow("links", "paper", 30.0, case="phantom-measured-30-1mm-paper", mismatch_mm=1.0)
     assert pose_of(row) == "phantom-measured-30"
     assert pose_of(CaseRow("links", "lateral", 30.0, case="vh-mechanism-60-0.5mm-lateral", mismatch_mm=0.5)) == "vh-mechanism-60"
+
+
+def test_truth_tissue_moves_the_patella_on_the_subjects_femur(small_case_set, tmp_path):
+    """The truth's patella: its motion is none at the scan's flexion, carries it distally as the knee flexes
+    and keeps its clearance from the femur at the scan's; the tissue holds its nodes exactly where the
+    motion puts them, drags the skin over it and leaves the skin far from it; a motion without a patella,
+    a subject without one or a mechanism without a PF joint are refused; a case set built with it says so."""
+    from knee.app.experiments.case_set import build_case_set, read_case_set, truth_patella
+    from knee.fitting.pipeline import anatomical_frames
+    from knee.fitting.subject import load_subject
+    from knee.fitting.subject_anatomy import subject_anatomy
+    from knee.foundations.errors import KneeInputError
+    from knee.foundations.surfaces import SurfaceQuery
+    from knee.models.mechanism import Mechanism
+
+    subject = load_subject(small_case_set / "subjects" / "phantom")
+    anatomy = subject_anatomy(subject)
+    Tf = anatomical_frames(subject)["femur"]
+    truth = Mechanism.from_name("volunteer")
+    patella, motion = truth_patella(subject, anatomy, Tf, truth)
+    femur = SurfaceQuery.of(anatomy.femur)
+    scan_deg = math.degrees(anatomy.scan_tf[0])
+    assert np.abs(motion(scan_deg) - np.eye(4)).max() < 1e-4  # mm: the clearance found by bisection
+    clearance = femur.signed_distance(patella.vertices).min()
+    M = motion(60.0)
+    moved = patella.vertices @ M[:3, :3].T + M[:3, 3]
+    assert femur.signed_distance(moved).min() == pytest.approx(clearance, abs=0.1)
+    assert patella.centroid[1] - moved.mean(axis=0)[1] > 15.0  # distally, along the femur's axis
+    # the tissue: the patella's nodes go exactly where the motion puts them, the skin over it follows
+    tissue = TetTissue(anatomy, patella=patella)
+    m = tissue.mesh
+    assert len(m.patella_nodes) > 20
+    T = np.eye(4)
+    T[:3, 3] = [4.0, 0.0, 0.0]  # 4 mm forwards
+    posed = tissue.pose(tissue.T_scan, patella_motion=T)
+    assert np.abs(posed.x[m.patella_nodes] - (m.X[m.patella_nodes] + T[:3, 3])).max() < 1e-9
+    skin = posed.skin(tissue).vertices
+    rest = m.X[: len(skin)]
+    d = np.linalg.norm(m.X[m.patella_nodes][None, :, :] - rest[:, None, :], axis=2).min(axis=1)
+    near, far = d < 0.5 * m.edge * 3, d > 0.6 * anatomy.width
+    assert (skin - rest)[near, 0].max() > 2.0
+    moved_far = np.linalg.norm(skin - rest, axis=1)[far]  # the tissue's reach fades, it does not carry the leg
+    assert np.median(moved_far) < 0.1 and moved_far.max() < 0.2 * (skin - rest)[near, 0].max()
+    held = tissue.pose(tissue.T_scan)  # held where it was scanned: the rest shape
+    assert np.abs(held.x - m.X).max() < 1e-6
+    with pytest.raises(KneeInputError, match="without a patella"):
+        TetTissue(anatomy).pose(tissue.T_scan, patella_motion=T)
+    bare = dataclasses.replace(subject, ct={k: v for k, v in subject.ct.items() if k != "patella"})
+    with pytest.raises(KneeInputError, match="no ct/patella"):
+        truth_patella(bare, anatomy, Tf, truth)
+    with pytest.raises(KneeInputError, match="no patello-femoral joint"):
+        truth_patella(subject, anatomy, Tf, Mechanism(dataclasses.replace(truth.params, pf=None)))
+    built = build_case_set(tmp_path / "p", seed=4, data=None, mechanism_flexions=(40.0,), mismatches=(0.0,),
+                           patella=True)
+    index = read_case_set(built)
+    assert index["truth_patella"] is True and "patella" in index["anatomy"][0]["notes"]
+    assert read_case_set(small_case_set)["truth_patella"] is False

@@ -12,7 +12,8 @@ favours the methods that use it. This one shares none of it:
   ``W(F) = mu/2 (tr(F^T F) - 3) - mu (J - 1) + lambda/2 (J - 1)^2`` (stress-free at rest, rotation
   invariant, finite for inverted elements), Poisson's ratio 0.4 by default (the model uses 0.3);
 - boundary conditions: the nodes on the bone surfaces move exactly with their bone (the femur held, the
-  tibia at the given pose), nothing else holds the tissue;
+  tibia at the given pose, and, when a patella is given, the patella moved as given), nothing else holds
+  the tissue;
 - solution: the static equilibrium as the minimum of the total energy over the free nodes (Newton's
   method with each element's Hessian projected to positive semi-definite, a backtracking line search),
   reached through increments of the tibia's motion of at most 20 deg.
@@ -25,7 +26,7 @@ Frames: the femur's anatomical frame (:class:`knee.models.fem.anatomy.KneeAnatom
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
@@ -118,7 +119,8 @@ def coarsened_skin(skin: trimesh.Trimesh, edge: float) -> trimesh.Trimesh:
 @dataclass
 class TissueMesh:
     """The tetrahedral tissue: rest nodes ``X`` (N, 3), tetrahedra (E, 4), the nodes on the femur and on
-    the tibia (index arrays), the skin's triangles over its nodes (F, 3)."""
+    the tibia (index arrays), the skin's triangles over its nodes (F, 3), and the nodes on the patella
+    (empty without one)."""
 
     X: np.ndarray
     tets: np.ndarray
@@ -126,6 +128,7 @@ class TissueMesh:
     tibia_nodes: np.ndarray
     skin_faces: np.ndarray
     edge: float
+    patella_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
 
 
 def _passive_weights(X, tets, h, n_skin):
@@ -141,14 +144,14 @@ def _passive_weights(X, tets, h, n_skin):
     return passive, active[j], w / w.sum(axis=1, keepdims=True)
 
 
-def tissue_mesh(anatomy, edge: float | None = None, seed: int = 0) -> TissueMesh:
+def tissue_mesh(anatomy, edge: float | None = None, seed: int = 0, patella: trimesh.Trimesh | None = None) -> TissueMesh:
     """Tetrahedra filling the skin around the bones of ``anatomy`` (a
-    :class:`knee.models.fem.anatomy.KneeAnatomy`), about ``edge`` mm apart (default a tenth of the femur's
-    width)."""
+    :class:`knee.models.fem.anatomy.KneeAnatomy`) and ``patella`` (a closed surface in the same frame, or
+    None), about ``edge`` mm apart (default a tenth of the femur's width)."""
     h = float(edge or EDGE_WIDTHS * anatomy.width)
     skin = coarsened_skin(anatomy.skin, h)
     sq = SurfaceQuery.of(skin)
-    bones = [anatomy.femur, anatomy.tibia]
+    bones = [anatomy.femur, anatomy.tibia] + ([patella] if patella is not None else [])
     bq = [SurfaceQuery.of(b) for b in bones]
     bone_pts = []
     for i, b in enumerate(bones):
@@ -163,8 +166,8 @@ def tissue_mesh(anatomy, edge: float | None = None, seed: int = 0) -> TissueMesh
     for q in bq:
         keep &= q.signed_distance(lattice) > 0.5 * h
     sv = np.asarray(skin.vertices, float)
-    X = np.vstack([sv, bone_pts[0], bone_pts[1], lattice[keep]])
-    ns, nf, nt = len(sv), len(bone_pts[0]), len(bone_pts[1])
+    X = np.vstack([sv, *bone_pts, lattice[keep]])
+    starts = np.cumsum([len(sv)] + [len(b) for b in bone_pts])  # each bone's first node, then the lattice's
     tets = Delaunay(X).simplices
     c = X[tets].mean(axis=1)
     inside = sq.signed_distance(c) < 0.0
@@ -172,28 +175,35 @@ def tissue_mesh(anatomy, edge: float | None = None, seed: int = 0) -> TissueMesh
         inside &= q.signed_distance(c) > 0.0
     tets = tets[inside]
     # a tetrahedron of four nodes on one bone carries nothing (its nodes are all prescribed); one that
-    # spans the joint space from one bone to the other stands for cartilage, menisci and capsule, which this
+    # spans the joint space from one bone to another stands for cartilage, menisci and capsule, which this
     # tissue does not model: crushed by the bones' relative motion, it would only stall the solution
     kind = np.zeros(len(X), int)
-    kind[ns:ns + nf], kind[ns + nf:ns + nf + nt] = 1, 2
+    for b in range(len(bones)):
+        kind[starts[b]:starts[b + 1]] = b + 1
     k = kind[tets]
-    tets = tets[~(np.all(k == 1, axis=1) | np.all(k == 2, axis=1) | ((k == 1).any(axis=1) & (k == 2).any(axis=1)))]
+    n_bones = sum((k == b + 1).any(axis=1).astype(int) for b in range(len(bones)))
+    tets = tets[~((n_bones >= 2) | (k > 0).all(axis=1))]
     # orientation and slivers
     flip = _volumes6(X, tets) < 0
     tets[flip] = tets[flip][:, [0, 2, 1, 3]]
     tets = tets[tet_quality(X[tets]) > 0.02]
-    return TissueMesh(X, tets, np.arange(ns, ns + nf), np.arange(ns + nf, ns + nf + nt), np.asarray(skin.faces), h)
+    nodes = [np.arange(starts[b], starts[b + 1]) for b in range(len(bones))]
+    return TissueMesh(X, tets, nodes[0], nodes[1], np.asarray(skin.faces), h,
+                      nodes[2] if patella is not None else np.zeros(0, int))
 
 
 class TetTissue:
     """The tetrahedral tissue of a knee (see the module docstring), posed with its bones.
 
     ``anatomy``: a :class:`knee.models.fem.anatomy.KneeAnatomy`; ``E`` (MPa, the moduli's scale: with the
-    bones' motion prescribed and no load, the shape does not depend on it), ``nu``."""
+    bones' motion prescribed and no load, the shape does not depend on it), ``nu``; ``patella``: the
+    patella's closed surface in the femur frame at the scan, a third bone whose motion :meth:`pose` takes
+    (None: the tissue has none, and the skin over the knee's front follows the femur and the tibia only)."""
 
-    def __init__(self, anatomy, edge: float | None = None, E: float = 1.0, nu: float = 0.4, seed: int = 0):
+    def __init__(self, anatomy, edge: float | None = None, E: float = 1.0, nu: float = 0.4, seed: int = 0,
+                 patella: trimesh.Trimesh | None = None):
         self.anatomy = anatomy
-        m = tissue_mesh(anatomy, edge, seed)
+        m = tissue_mesh(anatomy, edge, seed, patella)
         n_skin = int(m.skin_faces.max()) + 1
         self._passive = _passive_weights(m.X, m.tets, m.edge, n_skin)
         m.tets = m.tets[~np.isin(m.tets, self._passive[0]).any(axis=1)]
@@ -209,7 +219,7 @@ class TetTissue:
         G[:, :, 0] = -G[:, :, 1:].sum(axis=2)
         self.G = G
         fixed = np.zeros(len(m.X), bool)
-        fixed[m.femur_nodes] = fixed[m.tibia_nodes] = True
+        fixed[m.femur_nodes] = fixed[m.tibia_nodes] = fixed[m.patella_nodes] = True
         used = np.zeros(len(m.X), bool)
         used[m.tets.ravel()] = True
         self.free = np.nonzero(~fixed & used)[0]
@@ -227,11 +237,11 @@ class TetTissue:
         self._indptr = np.concatenate([[0], np.cumsum(np.bincount(keys // n, minlength=n))]).astype(np.int32)
         self._n = n
         self.T_scan = np.asarray(anatomy.tibia_pose, float)
-        # the first guess of a pose's free nodes: each moves by the femur's and the tibia's motions weighted
-        # by its distances to the two bones (a guess only: the energy's minimum does not depend on it)
-        df = cKDTree(m.X[m.femur_nodes]).query(m.X)[0]
-        dt = cKDTree(m.X[m.tibia_nodes]).query(m.X)[0]
-        self._w = (df / np.maximum(df + dt, 1e-9))[:, None]  # the tibia's share
+        # the first guess of a pose's free nodes: each moves by the bones' motions weighted by its inverse
+        # distances to them (a guess only: the energy's minimum does not depend on it)
+        inv = np.column_stack([1.0 / np.maximum(cKDTree(m.X[b]).query(m.X)[0], 1e-9)
+                               for b in (m.femur_nodes, m.tibia_nodes, m.patella_nodes) if len(b)])
+        self._w = inv / inv.sum(axis=1, keepdims=True)  # (N, bones): femur, tibia[, patella] shares
 
     def energy(self, x: np.ndarray, hessian: bool = False):
         """Total energy (N mm), its gradient (N, 3) and, with ``hessian``, the free nodes' stiffness (the
@@ -255,31 +265,43 @@ class TetTissue:
         return float(np.dot(self.vol, W)), g, sp.csc_matrix((data, self._indices, self._indptr),
                                                                shape=(self._n, self._n))
 
-    def pose(self, T_tibia, tolerance: float = 1e-2, max_iterations: int = 150) -> "PosedTissue":
-        """The tissue's equilibrium with the femur held and the tibia at ``T_tibia`` (4, 4; the tibia's frame
-        in the femur frame), through increments of at most :data:`INCREMENT_DEG`. ``tolerance``: the
-        largest Newton step at convergence, in node spacings. Raises :class:`KneeError` when an increment
-        does not converge in ``max_iterations`` (the fold behind a knee flexed to 90 deg can take 70: measured
-        on the Visible Human at 90 deg with a 2-5 deg deviation, 73 iterations, 2 min, 157 inverted
-        tetrahedra; most increments take 3-16)."""
+    def pose(self, T_tibia, patella_motion=None, tolerance: float = 1e-2, max_iterations: int = 150) -> "PosedTissue":
+        """The tissue's equilibrium with the femur held, the tibia at ``T_tibia`` (4, 4; the tibia's frame
+        in the femur frame) and, for a tissue with a patella, the patella moved from the scan by
+        ``patella_motion`` (4, 4, femur frame; None: held where it was scanned), through increments of at
+        most :data:`INCREMENT_DEG` of either bone's rotation. ``tolerance``: the largest Newton step at
+        convergence, in node spacings. Raises :class:`KneeError` when an increment does not converge in
+        ``max_iterations`` (the fold behind a knee flexed to 90 deg can take 70: measured on the Visible Human
+        at 90 deg with a 2-5 deg deviation, 73 iterations, 2 min, 157 inverted tetrahedra; most increments
+        take 3-16), and :class:`KneeInputError` for a patella's motion without a patella."""
         m = self.mesh
-        rel = np.asarray(T_tibia, float) @ np.linalg.inv(self.T_scan)  # the tibia's motion from the scan
-        rot = Rotation.from_matrix(rel[:3, :3])
-        n = max(1, int(math.ceil(math.degrees(rot.magnitude()) / INCREMENT_DEG)))
+        if patella_motion is not None and not len(m.patella_nodes):
+            raise KneeInputError("a patella's motion was given to a tissue without a patella")
+        motions = [np.asarray(T_tibia, float) @ np.linalg.inv(self.T_scan)]  # the tibia's motion from the scan
+        if len(m.patella_nodes):
+            motions.append(np.eye(4) if patella_motion is None else np.asarray(patella_motion, float))
+        rots = [Rotation.from_matrix(M[:3, :3]) for M in motions]
+        n = max(1, int(math.ceil(max(math.degrees(r.magnitude()) for r in rots) / INCREMENT_DEG)))
+        moving = [m.tibia_nodes, m.patella_nodes][: len(motions)]
         x = m.X.copy()
-        prev = np.eye(4)
+        prev = [np.eye(4)] * len(motions)
         iterations, residual = 0, 0.0
         for k in range(1, n + 1):
             f = k / n
-            M = np.eye(4)
-            M[:3, :3] = Rotation.from_rotvec(f * rot.as_rotvec()).as_matrix()
-            M[:3, 3] = f * rel[:3, 3]
-            x = (1.0 - self._w) * x + self._w * transform_points(M @ np.linalg.inv(prev), x)
+            now = []
+            for rel, rot in zip(motions, rots):
+                M = np.eye(4)
+                M[:3, :3] = Rotation.from_rotvec(f * rot.as_rotvec()).as_matrix()
+                M[:3, 3] = f * rel[:3, 3]
+                now.append(M)
+            x = self._w[:, :1] * x + sum(self._w[:, i + 1:i + 2] * transform_points(M @ np.linalg.inv(P), x)
+                                         for i, (M, P) in enumerate(zip(now, prev)))
             x[m.femur_nodes] = m.X[m.femur_nodes]
-            x[m.tibia_nodes] = transform_points(M, m.X[m.tibia_nodes])
+            for nodes, M in zip(moving, now):
+                x[nodes] = transform_points(M, m.X[nodes])
             x, its, residual = self._newton(x, tolerance, max_iterations)
             iterations += its
-            prev = M
+            prev = now
         passive, nb, w = self._passive
         x[passive] = m.X[passive] + np.einsum("pk,pkj->pj", w, x[nb] - m.X[nb])
         return PosedTissue(x, int((_volumes6(x, m.tets) <= 0).sum()), iterations, residual, n)

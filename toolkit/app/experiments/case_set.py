@@ -57,12 +57,14 @@ from knee.foundations.conventions import invert_poses, joint_to_pose, pose_to_jo
 from knee.foundations.errors import KneeError, KneeInputError
 from knee.foundations.files import read_text
 from knee.foundations.pointclouds import backproject, voxel_downsample
+from knee.foundations.surfaces import SurfaceQuery
 from knee.models.fem.anatomy import bone_clearance, bone_queries, in_contact
 from knee.models.fem.depth import DepthNoise, default_camera, render_depth
 from knee.models.fem.methods import PAPER_AT_BEST, reconstruct_in_camera
 from knee.models.fem.scene import build_knee_model, phantom_anatomy
 from knee.models.fem.tissue import TetTissue, smooth_surface_field
 from knee.models.mechanism import Mechanism
+from knee.models.phantom import build_phantom
 from knee.models.mechanism.params import (
     LINK_FEMUR,
     LINK_LENGTH,
@@ -89,9 +91,10 @@ MEASURED_FLEXIONS = (20.0, 30.0, 45.0)
 FIELD_WIDTHS = 0.25
 
 
-def template_prior(anatomy, template_name: str = "volunteer"):
-    """A bundled parameter set scaled to ``anatomy``'s femoral width (link endpoints and lengths), TF only;
-    returns it and the scale."""
+def template_prior(anatomy, template_name: str = "volunteer", with_pf: bool = False):
+    """A bundled parameter set scaled to ``anatomy``'s femoral width (link endpoints and lengths), TF only
+    (``with_pf``: its PF joint scaled too, points and lengths, the axes' directions kept); returns it and
+    the scale."""
     p = load_model(template_name)
     ref, _ = phantom_anatomy(Mechanism(p))
     s = anatomy.width / ref.width
@@ -103,7 +106,13 @@ def template_prior(anatomy, template_name: str = "volunteer"):
     init = dataclasses.replace(p.initial, unknowns=p.initial.unknowns * np.r_[1.0, 1.0, s, s, s])
     links = tuple(dataclasses.replace(lk, femur_radius=None if lk.femur_radius is None else lk.femur_radius * s)
                   for lk in q.links)
-    return dataclasses.replace(q, pf=None, initial=init, name=f"{template_name}-scaled-{s:.3f}", links=links), s
+    pf = None
+    if with_pf and p.pf is not None:
+        f = p.pf
+        pf = dataclasses.replace(f, point_femur=s * f.point_femur, point_patella=s * f.point_patella,
+                                 tendon_tibia=s * f.tendon_tibia, tendon_patella=s * f.tendon_patella,
+                                 tendon_length=s * f.tendon_length, lambda0=s * f.lambda0, lambda1=s * f.lambda1)
+    return dataclasses.replace(q, pf=pf, initial=init, name=f"{template_name}-scaled-{s:.3f}", links=links), s
 
 
 def measured_motion(data_folder, flexions_deg, subject=None) -> np.ndarray:
@@ -202,8 +211,10 @@ def _assembling_prior(params, seed: int):
     raise KneeError(f"no perturbed prior of {params.name} assembles over 0-120 deg")
 
 
-def _anatomies(out: Path, data, seed: int, names) -> list[tuple[Anatomy, Mechanism, object]]:
-    """(entry, truth mechanism, prior params) of each anatomy, their subject folders and priors written."""
+def _anatomies(out: Path, data, seed: int, names, patella: bool = False) -> list[tuple[Anatomy, Mechanism, object]]:
+    """(entry, truth mechanism, prior params) of each anatomy, their subject folders and priors written
+    (``patella``: the Visible Human's truth mechanism with the template's PF joint scaled too; its prior, TF
+    only, is the same either way)."""
     res = []
     for name in names:
         if name == "phantom":
@@ -213,11 +224,14 @@ def _anatomies(out: Path, data, seed: int, names) -> list[tuple[Anatomy, Mechani
         elif name == "visible-human-male":
             folder = visible_human_subject(data, out / "subjects" / name)
             template, s = template_prior(subject_anatomy(load_subject(folder)))
-            truth = Mechanism(template)
+            truth = Mechanism(template_prior(subject_anatomy(load_subject(folder)), with_pf=True)[0]
+                              if patella else template)
             note = f"the Visible Human Male's right knee; truth mechanism volunteer scaled by {s:.3f} to its width"
         else:
             raise KneeInputError(f"unknown anatomy {name!r}: phantom or visible-human-male")
-        prior, k = _assembling_prior(truth.params, seed)
+        if patella:
+            note += "; the truth's tissue holds the patella, moved by the truth mechanism's PF motion"
+        prior, k = _assembling_prior(truth.params if name == "phantom" else template, seed)
         note += f"; prior: every TF link endpoint moved 1-2 mm (seed {k}, the first that assembles over 0-120 deg)"
         path = _write_prior(out / "priors" / f"{name}.toml", prior)
         res.append((Anatomy(name, folder.relative_to(out), path.relative_to(out), truth.params.name, note), truth,
@@ -236,12 +250,15 @@ def case_rng(seed: int, *keys: str) -> np.random.Generator:
 def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible-human-male"),
                    families=("mechanism+deviation", "measured"), progress: Callable[[str], None] | None = None,
                    mechanism_flexions=MECHANISM_FLEXIONS, measured_flexions=MEASURED_FLEXIONS,
-                   mismatches=MISMATCHES_MM) -> Path:
+                   mismatches=MISMATCHES_MM, patella: bool = False) -> Path:
     """Build the case set into ``out`` (a new folder; see the module docstring). ``data``: the folder
     holding ``visible-human-male/`` and ``lenhart2015/``; without it, the phantom's mechanism cases only.
     Each pose is seen from the paper's placement at every skin mismatch, and from the other placements at
     1 mm (or at the middle mismatch given). Each pose, mismatch field and view draws from its own stream
-    (:func:`case_rng`), so a case is the same whichever subset of the set is built."""
+    (:func:`case_rng`), so a case is the same whichever subset of the set is built. ``patella``: the truth's
+    tissue holds the subject's patella as a third bone, moved by the truth mechanism's PF motion at each
+    case's flexion (:func:`truth_patella`); without, the skin over the knee's front follows the femur and
+    the tibia only, as the association model's does."""
     out = Path(out)
     say = progress or (lambda text: None)
     if data is None or not Path(data).is_dir():
@@ -249,13 +266,14 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
         families = tuple(f for f in families if f != "measured")
     cases = []
     entries = []
-    for entry, truth, prior_params in _anatomies(out, data, seed, anatomies):
+    for entry, truth, prior_params in _anatomies(out, data, seed, anatomies, patella):
         entries.append(entry)
         subject = load_subject(out / entry.subject)
         anatomy = subject_anatomy(subject, prior_params)
         Tf = anatomical_frames(subject)["femur"]  # femur frame (the model's) -> CT
         say(f"{entry.name}: the tissue model's mesh")
-        tissue = TetTissue(anatomy, seed=seed)
+        pat = truth_patella(subject, anatomy, Tf, truth) if patella else None
+        tissue = TetTissue(anatomy, seed=seed, patella=None if pat is None else pat[0])
         scan = anatomy.scan_tf
         poses = []
         for family in families:
@@ -274,7 +292,7 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
         centre = np.array([0.0, anatomy.joint_y, 0.0])
         for family, fl, T_tibia in poses:
             t0 = time.perf_counter()
-            posed = tissue.pose(T_tibia)
+            posed = tissue.pose(T_tibia, None if pat is None else pat[1](fl))
             skin = posed.skin(tissue)
             say(f"{entry.name} {family} {fl:g} deg: truth skin in {time.perf_counter() - t0:.0f} s "
                 f"({posed.inverted} inverted tetrahedra)")
@@ -305,12 +323,69 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
                         "truth_tf": pose_to_joint(T_tibia).tolist(),
                         "T_camera_femur_ct": (T_cam_model @ invert_poses(Tf)).tolist(),
                         "T_camera_tibia_ct": (T_cam_model @ rel @ invert_poses(Tf)).tolist()})
-    _write_index(out, seed, entries, cases)
+    _write_index(out, seed, entries, cases, patella)
     return out
 
 
-def _write_index(out: Path, seed: int, entries, cases) -> None:
-    lines = [f'format = "{FORMAT}"', "version = 1", f"seed = {int(seed)}", ""]
+#: The patella's vertices its clearance from the femur is measured over (a spread subset; the least distance).
+PATELLA_CLEARANCE_POINTS = 600
+
+
+def truth_patella(subject, anatomy, T_ct_femur, truth: Mechanism):
+    """The subject's patella in the femur frame at the scan (``T_ct_femur`` (4, 4): femur frame to CT;
+    ``anatomy``: the subject's :class:`knee.models.fem.anatomy.KneeAnatomy`, whose scan flexion and femur
+    it is) and its motion at a flexion: ``motion(flexion_deg) -> (4, 4)``, femur frame.
+
+    The motion is the truth mechanism's PF motion from the scan's flexion to that one (``P(a)
+    P(a_scan)^-1``, P the patella's pose in the femur frame), moved so that it carries the mechanism's own
+    patella (its phantom's, centred, at the scan) onto the subject's: the subject's patella centroid
+    follows the path the mechanism's follows, from where the subject's lies, and turns as it turns. For a
+    template scaled to a subject, the helical axis would otherwise swing the subject's patella about an
+    axis that is not under it. Then, since the mechanism's path is not the subject's groove, the patella is
+    slid along the line from the femur's nearest point to its centroid until its clearance from the femur
+    is the scan's (the least distance over :data:`PATELLA_CLEARANCE_POINTS` of its vertices): it rides on
+    the subject's own femur, as the tibia of the measured motion is kept at the scan's clearance.
+
+    Raises :class:`KneeInputError` when the subject has no patella surface or the mechanism no PF joint."""
+    mesh = subject.ct.get("patella")
+    if mesh is None:
+        raise KneeInputError(f"subject {subject.name} has no ct/patella surface: the truth's tissue cannot hold one")
+    if not truth.has_pf:
+        raise KneeInputError(f"the truth mechanism {truth.params.name} has no patello-femoral joint to move the patella")
+    patella = mesh.copy().apply_transform(invert_poses(T_ct_femur))
+    P_scan = joint_to_pose(truth.motion_at(np.array([anatomy.scan_tf[0]]))[1][0])
+    own = transform_points(P_scan, build_phantom(truth.params).patella.centroid[None])[0]
+    shift = np.eye(4)
+    shift[:3, 3] = patella.centroid - own
+    femur = SurfaceQuery.of(anatomy.femur)
+    v = np.asarray(patella.vertices, float)
+    v = v[np.linspace(0, len(v) - 1, min(len(v), PATELLA_CLEARANCE_POINTS)).astype(int)]
+    clearance = float(femur.signed_distance(v).min())
+    c = patella.centroid
+
+    def motion(flexion_deg: float) -> np.ndarray:
+        M = shift @ joint_to_pose(truth.motion_at(np.radians([flexion_deg]))[1][0]) @ invert_poses(P_scan)
+        M = M @ invert_poses(shift)
+        moved = transform_points(M, v)
+        mc = transform_points(M, c[None])[0]
+        u = mc - femur.closest_points(mc[None])[0]
+        u /= max(float(np.linalg.norm(u)), 1e-9)
+        lo, hi = -40.0, 40.0  # mm along u: the clearance grows with the slide
+        for _ in range(40):
+            t = 0.5 * (lo + hi)
+            if femur.signed_distance(moved + t * u).min() < clearance:
+                lo = t
+            else:
+                hi = t
+        M[:3, 3] += hi * u
+        return M
+
+    return patella, motion
+
+
+def _write_index(out: Path, seed: int, entries, cases, patella: bool = False) -> None:
+    lines = [f'format = "{FORMAT}"', "version = 1", f"seed = {int(seed)}",
+             f"truth_patella = {'true' if patella else 'false'}", ""]
     for e in entries:
         lines += ["[[anatomy]]", f"name = {toml_string(e.name)}", f"subject = {toml_string(str(e.subject))}",
                   f"prior = {toml_string(str(e.prior))}", f"truth_mechanism = {toml_string(e.truth_mechanism)}",
