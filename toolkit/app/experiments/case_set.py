@@ -15,7 +15,8 @@ What makes the cases honest:
 - the truth's flexed skin comes from another model of the tissue (:mod:`knee.models.fem.tissue`:
   conforming hyperelastic tetrahedra, not the association model's embedding grid), plus a smooth random
   normal displacement of 0, 1 or 2 mm RMS (correlation length a quarter of the femoral width) standing
-  for what no model captures;
+  for what no model captures; with ``patella=True`` that tissue also holds the subject's patella, moved by
+  the truth mechanism's PF motion (:func:`truth_patella`), which the association model does not model;
 - the depth image is rendered in the camera's own frame (RealSense-like noise, 1 mm at 400 mm, 2 %
   dropout), from the paper's placement (350 mm, oblique: 35 deg toward lateral, raised 30 deg) and two
   others; the methods get the image, the intrinsics and a rough pose of the knee in the camera's frame,
