@@ -810,3 +810,7 @@ def test_truth_tissue_moves_the_patella_on_the_subjects_femur(small_case_set, tm
     index = read_case_set(built)
     assert index["truth_patella"] is True and "patella" in index["anatomy"][0]["notes"]
     assert read_case_set(small_case_set)["truth_patella"] is False
+    from knee.app.cli import main  # its report says which truth it was measured on
+
+    assert main(["compare", str(built), "--methods", "kinematics", "--out", str(tmp_path / "c"), "--quiet"]) == 0
+    assert (tmp_path / "c" / "compare.md").read_text().startswith("# Case set p (seed 4, the truth moving the patella)")

@@ -168,9 +168,10 @@ def run_cases(args) -> int:
     n = sum(1 for c in index["case"] if select is None or select(c))
     if n == 0:
         raise KneeInputError(f"--only {args.only!r} selects none of the {len(index['case'])} cases")
-    say(f"knee compare: case set {args.model} (seed {index.get('seed')}), {n} cases x {len(methods)} methods")
+    truth = ", the truth moving the patella" if index.get("truth_patella") else ""
+    say(f"knee compare: case set {args.model} (seed {index.get('seed')}{truth}), {n} cases x {len(methods)} methods")
     bar = ProgressBar()
-    title = f"Case set {Path(args.model).name} (seed {index.get('seed')})"
+    title = f"Case set {Path(args.model).name} (seed {index.get('seed')}{truth})"
     with staged_folder(out) as tmp:
         recorder = report.CaseSetRecorder(tmp / "compare.rrd", methods)
         try:
