@@ -764,7 +764,7 @@ def test_truth_tissue_moves_the_patella_on_the_subjects_femur(small_case_set, tm
     from knee.fitting.pipeline import anatomical_frames
     from knee.fitting.subject import load_subject
     from knee.fitting.subject_anatomy import subject_anatomy
-    from knee.foundations.errors import KneeInputError
+    from knee.foundations.errors import KneeError, KneeInputError
     from knee.foundations.surfaces import SurfaceQuery
     from knee.models.mechanism import Mechanism
 
@@ -775,7 +775,7 @@ def test_truth_tissue_moves_the_patella_on_the_subjects_femur(small_case_set, tm
     patella, motion = truth_patella(subject, anatomy, Tf, truth)
     femur = SurfaceQuery.of(anatomy.femur)
     scan_deg = math.degrees(anatomy.scan_tf[0])
-    assert np.abs(motion(scan_deg) - np.eye(4)).max() < 1e-4  # mm: the clearance found by bisection
+    assert np.abs(motion(scan_deg) - np.eye(4)).max() < 1e-4  # mm: the clearance found by root finding
     clearance = femur.signed_distance(patella.vertices).min()
     M = motion(60.0)
     moved = patella.vertices @ M[:3, :3].T + M[:3, 3]
@@ -803,6 +803,15 @@ def test_truth_tissue_moves_the_patella_on_the_subjects_femur(small_case_set, tm
     bare = dataclasses.replace(subject, ct={k: v for k, v in subject.ct.items() if k != "patella"})
     with pytest.raises(KneeInputError, match="no ct/patella"):
         truth_patella(bare, anatomy, Tf, truth)
+    import knee.app.experiments.case_set as case_set_module
+
+    reach = case_set_module.PATELLA_REACH_MM  # a slide that cannot reach the clearance is refused, not clipped
+    case_set_module.PATELLA_REACH_MM = 0.01
+    try:
+        with pytest.raises(KneeError, match="cannot be brought"):
+            motion(60.0)
+    finally:
+        case_set_module.PATELLA_REACH_MM = reach
     with pytest.raises(KneeInputError, match="no patello-femoral joint"):
         truth_patella(subject, anatomy, Tf, Mechanism(dataclasses.replace(truth.params, pf=None)))
     built = build_case_set(tmp_path / "p", seed=4, data=None, mechanism_flexions=(40.0,), mismatches=(0.0,),

@@ -45,6 +45,7 @@ from types import SimpleNamespace
 from typing import Callable
 
 import numpy as np
+from scipy.optimize import brentq
 
 from knee.app.experiments.cases import CompareRow, reconstruction_row
 from knee.app.experiments.subject_cases import camera_stage_errors, camera_target_errors, random_pose
@@ -221,18 +222,19 @@ def _anatomies(out: Path, data, seed: int, names, patella: bool = False) -> list
         if name == "phantom":
             folder = make_subject(out / "subjects" / name, model="volunteer", seed=seed)
             truth = Mechanism.from_name("volunteer")
+            prior_of = truth.params
             note = "the bundled volunteer's synthetic subject; truth mechanism volunteer"
         elif name == "visible-human-male":
             folder = visible_human_subject(data, out / "subjects" / name)
-            template, s = template_prior(subject_anatomy(load_subject(folder)))
-            truth = Mechanism(template_prior(subject_anatomy(load_subject(folder)), with_pf=True)[0]
-                              if patella else template)
+            template, s = template_prior(subject_anatomy(load_subject(folder)), with_pf=patella)
+            truth = Mechanism(template)
+            prior_of = dataclasses.replace(template, pf=None)  # TF only, with the patella or without
             note = f"the Visible Human Male's right knee; truth mechanism volunteer scaled by {s:.3f} to its width"
         else:
             raise KneeInputError(f"unknown anatomy {name!r}: phantom or visible-human-male")
         if patella:
             note += "; the truth's tissue holds the patella, moved by the truth mechanism's PF motion"
-        prior, k = _assembling_prior(truth.params if name == "phantom" else template, seed)
+        prior, k = _assembling_prior(prior_of, seed)
         note += f"; prior: every TF link endpoint moved 1-2 mm (seed {k}, the first that assembles over 0-120 deg)"
         path = _write_prior(out / "priors" / f"{name}.toml", prior)
         res.append((Anatomy(name, folder.relative_to(out), path.relative_to(out), truth.params.name, note), truth,
@@ -330,6 +332,8 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
 
 #: The patella's vertices its clearance from the femur is measured over (a spread subset; the least distance).
 PATELLA_CLEARANCE_POINTS = 600
+#: How far (mm) :func:`truth_patella` may slide the patella to keep its clearance from the femur.
+PATELLA_REACH_MM = 40.0
 
 
 def truth_patella(subject, anatomy, T_ct_femur, truth: Mechanism):
@@ -371,14 +375,15 @@ def truth_patella(subject, anatomy, T_ct_femur, truth: Mechanism):
         mc = transform_points(M, c[None])[0]
         u = mc - femur.closest_points(mc[None])[0]
         u /= max(float(np.linalg.norm(u)), 1e-9)
-        lo, hi = -40.0, 40.0  # mm along u: the clearance grows with the slide
-        for _ in range(40):
-            t = 0.5 * (lo + hi)
-            if femur.signed_distance(moved + t * u).min() < clearance:
-                lo = t
-            else:
-                hi = t
-        M[:3, 3] += hi * u
+
+        def f(t):  # the clearance grows with the slide along u
+            return float(femur.signed_distance(moved + t * u).min()) - clearance
+
+        reach = PATELLA_REACH_MM
+        if f(-reach) > 0.0 or f(reach) < 0.0:
+            raise KneeError(f"the patella cannot be brought to {clearance:.2f} mm from the femur within {reach:.0f} mm "
+                            f"at {flexion_deg:g} deg")
+        M[:3, 3] += brentq(f, -reach, reach, xtol=1e-6) * u
         return M
 
     return patella, motion
