@@ -28,10 +28,31 @@ def main() -> int:
     ap.add_argument("--fem-skin", action="store_true", help="also the rows with the flexion estimate's skin posed by "
                     "the FEM (flexion_skin='fem')")
     args = ap.parse_args()
-    from knee.app.experiments.case_set import run_case_set
+    from knee.foundations.errors import KneeError
 
+    try:
+        return run(args)
+    except KneeError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    from knee.app.experiments.case_set import is_case_set, read_case_set, run_case_set
+    from knee.foundations.errors import KneeInputError
+    from knee.foundations.files import staged_file
+
+    if not is_case_set(args.cases):
+        raise KneeInputError(f"{args.cases} is not a case set (scripts/build_case_set.py builds one)")
+    index = read_case_set(args.cases)
+    if args.csv and Path(args.csv).exists():
+        raise KneeInputError(f"{args.csv} exists; not overwritten (give a new file)")
     only = [o for o in args.only.split(",") if o]
     select = (lambda c: any(o in c["id"] for o in only)) if only else None
+    if select is not None and not any(select(c) for c in index["case"]):
+        raise KneeInputError(f"--only {args.only} selects none of the {len(index['case'])} cases")
     t0 = time.perf_counter()
 
     def progress(i, n, text):
@@ -71,7 +92,7 @@ def main() -> int:
         ok = [r for r in rows["iv fem skin"] if not r.failed]
         print(f"(iv) fem skin: median {statistics.median(r.footprints_mm for r in ok):.2f} mm over {len(ok)} cases")
     if args.csv:
-        with open(args.csv, "w", newline="") as fh:
+        with staged_file(args.csv) as tmp, open(tmp, "w", newline="") as fh:
             allrows = [dict(dataclasses.asdict(r), variant=k) for k, rs in rows.items() for r in rs]
             w = csv.DictWriter(fh, fieldnames=list(allrows[0]))
             w.writeheader()

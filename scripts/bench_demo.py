@@ -35,8 +35,10 @@ def timed(cmd) -> float:
 
 
 def main():
+    from knee.app.console import at_least
+
     ap = argparse.ArgumentParser()
-    ap.add_argument("--runs", type=int, default=2, help="demo runs (2)")
+    ap.add_argument("--runs", type=at_least(1), default=2, help="demo runs (2)")
     args = ap.parse_args()
     demo = []
     with tempfile.TemporaryDirectory() as tmp:

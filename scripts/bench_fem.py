@@ -80,8 +80,10 @@ def main():
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
         print(json.dumps(run_one(json.loads(sys.argv[2]))))
         return
+    from knee.app.console import at_least
+
     ap = argparse.ArgumentParser()
-    ap.add_argument("--steps", type=int, default=30)
+    ap.add_argument("--steps", type=at_least(1), default=30)
     ap.add_argument("--skip-300", action="store_true")
     args = ap.parse_args()
     configs = [("default model, toolkit solver", {"steps": args.steps}),

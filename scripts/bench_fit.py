@@ -20,8 +20,10 @@ import numpy as np
 
 
 def main():
+    from knee.app.console import at_least
+
     ap = argparse.ArgumentParser()
-    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--repeat", type=at_least(1), default=3)
     args = ap.parse_args()
 
     from knee.fitting.optimize import (

@@ -17,8 +17,10 @@ import time
 
 
 def main():
+    from knee.app.console import at_least
+
     ap = argparse.ArgumentParser()
-    ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--repeat", type=at_least(1), default=7)
     args = ap.parse_args()
     from knee.models.gait import analyse_gait, normative_trial
     from knee.models.mechanism import Mechanism

@@ -42,8 +42,10 @@ def run(interrupt: bool) -> tuple[float, float, int]:
 
 
 def main() -> None:
+    from knee.app.console import at_least
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--runs", type=at_least(1), default=3)
     args = ap.parse_args()
     stops = [run(True) for _ in range(args.runs)]
     base = run(False)

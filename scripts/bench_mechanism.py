@@ -32,8 +32,10 @@ def timeit(fn, repeat):
 
 
 def main():
+    from knee.app.console import at_least
+
     ap = argparse.ArgumentParser()
-    ap.add_argument("--repeat", type=int, default=300)
+    ap.add_argument("--repeat", type=at_least(1), default=300)
     args = ap.parse_args()
     from knee.models.mechanism import Mechanism
     from knee.models.mechanism import reference as ref

@@ -31,14 +31,13 @@ PAPER_CASES = {("oblique", 30), ("oblique", 105), ("frontal", 120)}
 
 
 def main():
+    from knee.app.console import at_least
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repeat", type=int, default=2,
+    ap.add_argument("--repeat", type=at_least(1), default=2,
                     help="runs of every case and configuration (the sweep repeated; default 2); the table gives "
                          "each case's best and worst")
     args = ap.parse_args()
-    if args.repeat < 1:
-        print("bench_prior: --repeat must be at least 1", file=sys.stderr)
-        sys.exit(2)
 
     from knee.app.experiments.cases import case_points, result_row, run_method
     from knee.fitting.optimize import perturb_endpoints

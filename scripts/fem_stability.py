@@ -16,10 +16,12 @@ import numpy as np
 
 
 def main():
+    from knee.app.console import at_least
+
     ap = argparse.ArgumentParser()
-    ap.add_argument("--steps", type=int, default=2000)
-    ap.add_argument("--force", type=float, default=1000.0)
-    ap.add_argument("--release", type=int, default=200, help="step at which the load is removed (-1: never)")
+    ap.add_argument("--steps", type=at_least(1), default=2000)
+    ap.add_argument("--force", type=at_least(0.0, float), default=1000.0)
+    ap.add_argument("--release", type=at_least(-1), default=200, help="step at which the load is removed (-1: never)")
     args = ap.parse_args()
     from knee.models.fem.scene import build_association_model, knee_angles
     from knee.models.mechanism import Mechanism

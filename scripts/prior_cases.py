@@ -16,7 +16,9 @@ import argparse
 import csv
 import math
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -25,7 +27,11 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
+    if args.out and Path(args.out).exists():
+        print(f"error: {args.out} exists; not overwritten (give a new file)", file=sys.stderr)
+        sys.exit(2)
     from knee.app.experiments.cases import phantom_targets
+    from knee.foundations.files import staged_file
     from knee.fitting.optimize import perturb_endpoints
     from knee.foundations.conventions import joint_to_pose
     from knee.foundations.pointclouds import backproject
@@ -47,8 +53,8 @@ def main():
         cam = default_camera(azimuth_deg=az)
         for deg in range(30, 121, 15):
             tf, pf, _ = truth.solve(math.radians(deg))
-            skin = ph_t.skin(joint_to_pose(tf), joint_to_pose(pf))
-            pts = backproject(DepthNoise().apply(render_depth(skin.vertices, skin.faces, cam), rng), cam.K,
+            truth_skin = ph_t.skin(joint_to_pose(tf), joint_to_pose(pf))
+            pts = backproject(DepthNoise().apply(render_depth(truth_skin.vertices, truth_skin.faces, cam), rng), cam.K,
                               cam.T_world_cam)
             t = time.perf_counter()
             est = estimate_flexion(skin, pts)
@@ -75,7 +81,7 @@ def main():
           f"{statistics.median(r['tibia_footprints_mm'] for r in ok):.2f}); median wall time "
           f"{statistics.median(r['seconds'] for r in rows):.1f} s")
     if args.out:
-        with open(args.out, "w", newline="") as fh:
+        with staged_file(args.out) as tmp, open(tmp, "w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=list(rows[0]))
             w.writeheader()
             w.writerows(rows)

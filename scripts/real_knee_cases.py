@@ -37,6 +37,23 @@ def main():
                     help="the truth's motion: the template mechanism's (30/60/90 deg), or the lenhart2015 knee's "
                          "measured dynamic-MRI motion transferred as joint coordinates (20/30/45 deg)")
     args = ap.parse_args()
+    from knee.foundations.errors import KneeError, KneeInputError
+    from knee.models.fem.methods import METHODS
+
+    try:
+        methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
+        unknown = [m for m in methods if m not in METHODS]
+        if unknown or not methods:
+            raise KneeInputError(f"--methods must be a comma list of {', '.join(METHODS)}, got {args.methods!r}")
+        if args.out and Path(args.out).exists():
+            raise KneeInputError(f"{args.out} exists; not overwritten (give a new file)")
+        return run(args, methods)
+    except KneeError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+def run(args, methods) -> int:
     from knee.app.experiments.case_set import template_prior
     from knee.app.experiments.subject_cases import compare_subject
     from knee.fitting.optimize import perturb_endpoints
@@ -81,7 +98,6 @@ def main():
         tf = pose_to_joint(T @ invert_poses(T_scan) @ anatomy.tibia_pose)
     else:
         tf = pose_to_joint(T)
-    methods = tuple(m.strip() for m in args.methods.split(","))
     rows = compare_subject(anatomy, prior, tf, methods, azimuths=(35.0,), seed=3,
                            progress=lambda i, n, t: print(f"[{i}/{n}] {t}", file=sys.stderr, flush=True))
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -105,11 +121,14 @@ def main():
     if args.out:
         import csv
 
-        with open(args.out, "w", newline="") as fh:
+        from knee.foundations.files import staged_file
+
+        with staged_file(args.out) as tmp, open(tmp, "w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=list(dataclasses.asdict(rows[0])))
             w.writeheader()
             w.writerows(dataclasses.asdict(r) for r in rows)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

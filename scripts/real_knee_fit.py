@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -25,10 +26,22 @@ WIDE = {"pf_axis_point_mm": 20.0, "pf_axis_deg": 20.0, "pf_tendon_mm": 8.0, "pf_
 
 
 def main() -> None:
+    from knee.app.console import at_least
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=at_least(0), default=0)
     args = ap.parse_args()
+    from knee.foundations.errors import KneeError
+
+    try:
+        run(args)
+    except KneeError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+
+
+def run(args) -> None:
     from knee.fitting.pipeline import fit_subject
     from knee.fitting.reference_data import lenhart_subject
 

@@ -260,6 +260,21 @@ def test_diagnosis_script_refuses_bad_input_in_one_line(small_case_set, tmp_path
         assert not out.exists()
 
 
+def test_bench_script_refuses_bad_input_in_one_line(small_case_set, tmp_path, capsys):
+    """scripts/bench_case_set.py: not a case set, a selection of no case, an existing --csv: one line each,
+    exit code 2, the existing file untouched and nothing run."""
+    out = tmp_path / "rows.csv"
+    for argv, says in (([tmp_path / "nothing"], "is not a case set"),
+                       ([small_case_set, "--only", "no-such-case"], "selects none of the")):
+        assert _run_script("bench_case_set", [*argv, "--csv", out]) == 2
+        _one_line_error(capsys, says)
+        assert not out.exists()
+    out.write_text("kept\n")
+    assert _run_script("bench_case_set", [small_case_set, "--csv", out]) == 2
+    _one_line_error(capsys, "exists; not overwritten")
+    assert out.read_text() == "kept\n"
+
+
 def _run_script(name: str, argv) -> int:
     """``scripts/NAME.py``'s main() run with ``argv`` (sys.argv restored after); its exit code."""
     import importlib.util
@@ -334,6 +349,37 @@ def test_case_set_index_errors(tmp_path):
                                             'anatomy = "a"\n')
     with pytest.raises(KneeInputError, match="case c: missing depth"):
         read_case_set(tmp_path)
+
+
+def test_case_set_build_refuses_bad_choices_before_writing(tmp_path):
+    from knee.app.experiments.case_set import build_case_set
+    from knee.foundations.errors import KneeInputError
+
+    out = tmp_path / "set"
+    for kw, msg in (({"seed": -1}, "seed must be a non-negative integer, got -1"),
+                    ({"seed": 1.5}, "seed must be a non-negative integer"),
+                    ({"anatomies": ("phantom", "knee")}, "unknown anatomy 'knee'"),
+                    ({"families": ("walking",)}, "unknown case family 'walking'"),
+                    ({"families": ()}, "no case family given"),
+                    ({"anatomies": ("visible-human-male",)}, "without the data folder"),
+                    ({"families": ("measured",)}, "without the data folder")):
+        with pytest.raises(KneeInputError, match=msg):
+            build_case_set(out, data=None, **{"seed": 0, **kw})
+        assert not out.exists()
+
+
+def test_case_set_script_refuses_a_negative_seed_in_one_line(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "build_case_set.py"
+    r = subprocess.run([sys.executable, str(script), "--out", str(tmp_path / "set"), "--seed", "-1",
+                        "--data", str(tmp_path / "none")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines()[-1] == ("build_case_set: error: the seed must be a non-negative integer, "
+                                                 "got -1")
+    assert not (tmp_path / "set").exists()
 
 
 def _error_lines(capsys):

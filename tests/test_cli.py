@@ -239,3 +239,37 @@ def test_a_negative_seed_is_one_line(command, tmp_path):
     p = run(*command, "--seed", "-1")
     assert p.returncode == 2 and p.stderr.count("\n") == 1 and "--seed" in p.stderr and "4294967295" in p.stderr
     assert "Traceback" not in p.stderr
+
+
+def test_at_least_refuses_counts_and_numbers_out_of_range():
+    import argparse
+
+    from knee.app.console import at_least
+
+    ap = argparse.ArgumentParser(prog="x")
+    ap.add_argument("--runs", type=at_least(1))
+    ap.add_argument("--flexion", type=at_least(0.0, float, 150.0))
+    ok = ap.parse_args(["--runs", "1", "--flexion", "150"])
+    assert ok.runs == 1 and isinstance(ok.runs, int) and ok.flexion == 150.0
+    for argv, says in ((["--runs", "0"], "--runs: must be at least 1, got 0"),
+                       (["--runs", "2.5"], "--runs: must be an integer, got '2.5'"),
+                       (["--flexion", "150.5"], "--flexion: must be from 0 to 150, got 150.5"),
+                       (["--flexion", "nan"], "--flexion: must be from 0 to 150, got nan"),
+                       (["--flexion", "-1"], "--flexion: must be from 0 to 150, got -1")):
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err), pytest.raises(SystemExit) as e:
+            ap.parse_args(argv)
+        assert e.value.code == 2 and err.getvalue().strip().splitlines()[-1] == f"x: error: argument {says}"
+
+
+@pytest.mark.parametrize("script, argv", [("bench_mechanism", ["--repeat", "0"]), ("bench_demo", ["--runs", "-1"]),
+                                          ("fem_stability", ["--steps", "0"]),
+                                          ("fem_standard_case", ["--flexion", "500"])])
+def test_scripts_refuse_counts_out_of_range_in_one_line(script, argv):
+    """A benchmark script given a count or an angle out of range stops at its arguments, one line, before
+    any work (a zero repeat count had ended in a median of nothing)."""
+    path = Path(__file__).resolve().parents[1] / "scripts" / f"{script}.py"
+    r = subprocess.run([sys.executable, str(path), *argv], capture_output=True, text=True, timeout=120)
+    last = r.stderr.strip().splitlines()[-1]
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert last.startswith(f"{script}.py: error: argument {argv[0]}: must be") and last.endswith(f"got {argv[1]}")

@@ -6,6 +6,7 @@ Every check raises :class:`~knee.foundations.errors.KneeInputError` with one lin
 
 from __future__ import annotations
 
+import argparse
 import math
 import sys
 from pathlib import Path
@@ -48,6 +49,21 @@ def check_max_steps(n: int) -> None:
     """``--max-steps``: 1 to :data:`MAX_STEPS`."""
     if not 1 <= n <= MAX_STEPS:
         raise KneeInputError(f"--max-steps must be 1-{MAX_STEPS}, got {n}")
+
+
+def at_least(lo: float, kind=int, hi: float | None = None):
+    """An ``argparse`` type: a number of ``kind`` no smaller than ``lo`` (and no larger than ``hi``), so that
+    a count of runs or steps out of range is refused in one line instead of failing later."""
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be {'an integer' if kind is int else 'a number'}, got {text!r}")
+        if not (isinstance(v, int) or math.isfinite(v)) or v < lo or (hi is not None and v > hi):
+            raise argparse.ArgumentTypeError(f"must be {'at least ' + format(lo, 'g') if hi is None else f'from {lo:g} to {hi:g}'}"
+                                             f", got {text}")
+        return v
+    return parse
 
 
 def numbers(text: str, n: int, what: str, hint: str = "") -> np.ndarray:

@@ -83,6 +83,9 @@ FORMAT = "knee-case-set"
 #: seed 000's (about 35 cm, oblique).
 PLACEMENTS = {"paper": (35.0, 30.0, 350.0), "frontal": (0.0, 15.0, 400.0), "lateral": (70.0, 35.0, 300.0)}
 MISMATCHES_MM = (0.0, 1.0, 2.0)
+#: The anatomies a case set can hold and its families of truth motion (:func:`build_case_set`).
+ANATOMIES = ("phantom", "visible-human-male")
+FAMILIES = ("mechanism+deviation", "measured")
 #: The rough pose given to the methods: the truth turned by 15-30 deg and moved by 25-50 mm.
 ROUGH_DEG, ROUGH_MM = (15.0, 30.0), (25.0, 50.0)
 #: The truth's deviation from its mechanism's motion: 2-5 deg, 1-3 mm.
@@ -264,7 +267,17 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
     the tibia only, as the association model's does."""
     out = Path(out)
     say = progress or (lambda text: None)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise KneeInputError(f"the seed must be a non-negative integer, got {seed!r}")
+    for kind, given, known in (("anatomy", anatomies, ANATOMIES), ("case family", families, FAMILIES)):
+        unknown = [g for g in given if g not in known]
+        if unknown or not given:
+            raise KneeInputError(f"unknown {kind} {unknown[0]!r}: one or more of {', '.join(known)}" if unknown
+                                 else f"no {kind} given: one or more of {', '.join(known)}")
     if data is None or not Path(data).is_dir():
+        if "phantom" not in anatomies or "mechanism+deviation" not in families:
+            raise KneeInputError("without the data folder (visible-human-male/, lenhart2015/) only the phantom's "
+                                 "mechanism+deviation cases can be built")
         anatomies = tuple(a for a in anatomies if a == "phantom")
         families = tuple(f for f in families if f != "measured")
     cases = []
