@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -24,15 +25,37 @@ def main():
     ap.add_argument("--out", default="compare-priors")
     args = ap.parse_args()
     out = Path(args.out)
+
+    def stop(signum, frame):  # a termination is handled as Ctrl-C: the runs are stopped and cleaned up
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, stop)
+    # Ctrl-C handled here even when started with it ignored (in the background): the runs started below then
+    # take it too, and each removes its unfinished output
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
     procs = {name: subprocess.Popen([sys.executable, "-m", "knee.app.cli", "compare", "volunteer", *extra, "--quiet",
                                      "--out", str(out / name)], env=env, stdout=subprocess.PIPE, text=True)
              for name, extra in SETS.items()}
     failed = 0
-    for name, p in procs.items():
-        text, _ = p.communicate()
-        print(f"## {name}\n{text}")
-        failed |= p.returncode
+    try:
+        for name, p in procs.items():
+            text, _ = p.communicate()
+            print(f"## {name}\n{text}")
+            failed |= p.returncode
+    except KeyboardInterrupt:
+        failed = 130
+        print("compare_priors: interrupted; the runs stopped, no results written", file=sys.stderr)
+    finally:
+        # interrupted (Ctrl-C): the runs are stopped too, and each removes its unfinished output
+        for p in procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in procs.values():
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                p.kill()
     sys.exit(failed)
 
 

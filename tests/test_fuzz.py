@@ -462,9 +462,9 @@ def test_every_parameter_file_the_toolkit_writes_loads_back(tmp_path):
     np.testing.assert_array_equal(back.to_vector(), vol.to_vector())
 
 
-def _interrupt_when(marker: str, *args) -> tuple[int, str, float]:
-    """``knee ARGS`` in a child process, Ctrl-C as soon as ``marker`` appears on its standard error (the
-    work under way): (exit code, stderr, seconds from the signal to its end)."""
+def _interrupt_when(marker: str, *args, sig=signal.SIGINT) -> tuple[int, str, float]:
+    """``knee ARGS`` in a child process, Ctrl-C (or ``sig``) as soon as ``marker`` appears on its standard
+    error (the work under way): (exit code, stderr, seconds from the signal to its end)."""
     import select
     import subprocess
     import sys
@@ -478,7 +478,7 @@ def _interrupt_when(marker: str, *args) -> tuple[int, str, float]:
             err += os.read(p.stderr.fileno(), 4096)
     assert p.poll() is None, f"finished before the interrupt: {err.decode()}"
     t0 = time.monotonic()
-    p.send_signal(signal.SIGINT)
+    p.send_signal(sig)
     _, rest = p.communicate(timeout=120)
     return p.returncode, (err + rest).decode(), time.monotonic() - t0
 
@@ -495,6 +495,18 @@ def test_ctrl_c_stops_at_once_with_one_line_and_no_results(tmp_path, base, comma
     assert not out.exists() and not [p for p in tmp_path.iterdir()]  # nothing, not even a hidden partial folder
     # the demo's FEM workers are stopped, not waited for: none of them reports its case done (before, the
     # demo waited about 20 s for them and wrote results); the time to stop is in scripts/bench_interrupt.py
+    assert " done after " not in err, err
+
+
+def test_a_termination_request_is_taken_as_ctrl_c(tmp_path):
+    """SIGTERM (``kill``, a scheduler's time limit) to ``knee demo`` while its FEM workers run: the same
+    one line and exit code as Ctrl-C, the workers stopped, nothing written, not even a hidden partial
+    folder (before, the process died where it stood and left its partial output)."""
+    out = tmp_path / "out"
+    code, err, _ = _interrupt_when("sweeping the bundled", "demo", "--out", out, sig=signal.SIGTERM)
+    assert code == 130, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1] == "knee: error: interrupted; no results written"
+    assert not out.exists() and not [p for p in tmp_path.iterdir()]
     assert " done after " not in err, err
 
 

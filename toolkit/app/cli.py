@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import signal
 import sys
 
 from knee.app.console import error
@@ -215,11 +216,17 @@ def main(argv=None) -> int:
                      f"(KNEE_DEBUG=1 shows the traceback)", EXIT_INTERNAL)
 
 
+def _terminated(signum, frame):
+    raise KeyboardInterrupt
+
+
 def entry() -> None:
-    """The installed ``knee`` script: :func:`main`, then exit with its code. After Ctrl-C, when every
-    partial output has already been removed and the workers stopped, the process leaves at once: the
-    interpreter's own teardown of the loaded numeric libraries takes about a second, which a user who
-    pressed Ctrl-C should not wait for."""
+    """The installed ``knee`` script: :func:`main`, then exit with its code. A termination request
+    (SIGTERM: ``kill``, a scheduler's time limit) is taken as Ctrl-C, so that it too removes every partial
+    output. After either, when the partial outputs have been removed and the workers stopped, the process
+    leaves at once: the interpreter's own teardown of the loaded numeric libraries takes about a second,
+    which a user who pressed Ctrl-C should not wait for."""
+    signal.signal(signal.SIGTERM, _terminated)
     code = main()
     if code == EXIT_INTERRUPTED:
         sys.stdout.flush()
