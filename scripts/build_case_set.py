@@ -11,6 +11,7 @@ methods are given: :mod:`knee.app.experiments.case_set`. About 2-5 min on 2 core
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import time
 from pathlib import Path
@@ -35,6 +36,11 @@ def main() -> int:
         print(f"build_case_set: {out} exists; not overwritten", file=sys.stderr)
         return 2
     t0 = time.perf_counter()
+
+    def terminated(signum, frame):  # a termination request (kill, a time limit) taken as Ctrl-C: no partial set
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, terminated)
     try:
         with staged_folder(out) as tmp:
             build_case_set(tmp, args.seed, args.data if Path(args.data).is_dir() else None,
@@ -45,6 +51,9 @@ def main() -> int:
     except KneeError as e:
         print(f"build_case_set: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"build_case_set: interrupted; {out} not written", file=sys.stderr)
+        return 130
     print(f"case set: {out} ({time.perf_counter() - t0:.0f} s); run it with: knee compare {out} --out OUT")
     return 0
 

@@ -869,3 +869,30 @@ def test_truth_tissue_moves_the_patella_on_the_subjects_femur(small_case_set, tm
 
     assert main(["compare", str(built), "--methods", "kinematics", "--out", str(tmp_path / "c"), "--quiet"]) == 0
     assert (tmp_path / "c" / "compare.md").read_text().startswith("# Case set p (seed 4, the truth moving the patella)")
+
+
+def test_case_set_build_terminated_leaves_nothing(tmp_path):
+    """scripts/build_case_set.py stopped by a termination request (kill, a time limit) while it builds:
+    one line, exit code 130, neither the set nor its hidden partial folder left."""
+    import os
+    import select
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "build_case_set.py"
+    p = subprocess.Popen([sys.executable, str(script), "--out", str(tmp_path / "set"), "--data", str(tmp_path / "none")],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    err, deadline = b"", time.monotonic() + 120
+    while b"truth skin" not in err and time.monotonic() < deadline and p.poll() is None:
+        if select.select([p.stderr], [], [], 0.1)[0]:
+            err += os.read(p.stderr.fileno(), 4096)
+    assert p.poll() is None, err.decode()
+    p.send_signal(signal.SIGTERM)
+    _, rest = p.communicate(timeout=60)
+    err = (err + rest).decode()
+    assert p.returncode == 130 and "Traceback" not in err
+    assert err.strip().splitlines()[-1] == f"build_case_set: interrupted; {tmp_path / 'set'} not written"
+    assert not list(tmp_path.iterdir())
