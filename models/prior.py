@@ -259,6 +259,19 @@ class SubjectSkinModel(SkinModel):
         return [self._local[0], self._local[1], (pts, nrm)]
 
 
+def _checked_cloud(points) -> np.ndarray:
+    """The cloud as (P, 3) floats, or a :class:`KneeInputError` saying what is wrong with it: its shape, too
+    few points, or points that are not finite (counted)."""
+    pts = np.asarray(points, float)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise KneeInputError(f"the point cloud must be (P, 3) points, got an array of shape {pts.shape}")
+    bad = int(np.count_nonzero(~np.all(np.isfinite(pts), axis=1)))
+    if len(pts) < MIN_POINTS or bad:
+        raise KneeInputError(f"the point cloud needs at least {MIN_POINTS} points, all finite, got {len(pts)}"
+                             + (f" ({bad} not finite)" if bad else ""))
+    return pts
+
+
 def _score(skin_model: SkinModel, alpha, points, init, iterations: int = 30, exact: bool = True):
     """ICP of the points onto the skin posed at ``alpha``; the score is the trimmed RMS of the points'
     distances to the skin: exact (the posed parts' signed distances), or with ``exact=False`` (the
@@ -289,10 +302,7 @@ def estimate_flexion(skin: SkinModel, points, T_init=None, coarse_step_deg: floa
     Raises :class:`KneeInputError` when the cloud is empty or too small, or covers too little of the shank
     (below the knee) to see the flexion.
     """
-    pts = np.asarray(points, float)
-    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < MIN_POINTS or not np.all(np.isfinite(pts)):
-        raise KneeInputError(f"the point cloud needs at least {MIN_POINTS} finite (P, 3) points, got "
-                             f"{pts.shape[0] if pts.ndim == 2 else pts.size}")
+    pts = _checked_cloud(points)
     init = np.eye(4) if T_init is None else np.asarray(T_init, float)
     pts = voxel_downsample(pts, VOXEL_MM)
     local = transform_points(init, pts)
@@ -401,10 +411,7 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
     lateral view of the phantom at 45 deg, its guess 24 deg and 44 mm off, matched the skin at 15 deg
     flexion 122 mm away with 53 % of the points; the global starts found 86 %, 4 mm from the truth).
     Raises :class:`KneeInputError` when the cloud is too small."""
-    pts = np.asarray(points, float)
-    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < MIN_POINTS or not np.all(np.isfinite(pts)):
-        raise KneeInputError(f"the point cloud needs at least {MIN_POINTS} finite (P, 3) points, got "
-                             f"{pts.shape[0] if pts.ndim == 2 else pts.size}")
+    pts = _checked_cloud(points)
     pts = voxel_downsample(pts, VOXEL_MM)
     lo, hi = skin.mech.assembly_range
     cands = sorted({float(np.clip(math.radians(d), lo, hi)) for d in flexions_deg})

@@ -88,6 +88,15 @@ def test_depth_image_and_point_cloud_files(tmp_path, knee_like):
     ply = tmp_path / "cloud.ply"
     o3d.io.write_point_cloud(str(ply), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)))
     np.testing.assert_allclose(load_point_cloud(ply), pts, atol=1e-3)
+    # a camera's pixels without a return (NaN, or depth 0 back-projected to the origin) are dropped, the
+    # rest kept in order; a cloud of nothing else is refused
+    holes = np.insert(pts, [0, 5, 5], [[np.nan, np.nan, np.nan], [0.0, 0.0, 0.0], [np.inf, 1.0, 2.0]], axis=0)
+    xyz = tmp_path / "holes.xyz"
+    np.savetxt(xyz, holes)
+    np.testing.assert_allclose(load_point_cloud(xyz), pts, atol=1e-6)
+    np.savetxt(xyz, np.array([[np.nan, 0.0, 1.0], [0.0, 0.0, 0.0]]))
+    with pytest.raises(KneeInputError, match="none of its 2 points is valid"):
+        load_point_cloud(xyz)
     with pytest.raises(KneeInputError, match="no such"):
         load_point_cloud(tmp_path / "missing.ply")
     with pytest.raises(KneeInputError, match="intrinsics"):

@@ -94,6 +94,12 @@ def test_point_clouds_that_cannot_show_the_flexion_are_refused(volunteer, scene)
     ph, tf, pts = scene
     with pytest.raises(KneeInputError, match="at least 500"):
         estimate_flexion(SkinModel(volunteer, ph), pts[:100])
+    holed = pts.copy()
+    holed[:3, 1] = np.nan
+    with pytest.raises(KneeInputError, match=rf"all finite, got {len(pts)} \(3 not finite\)"):
+        estimate_flexion(SkinModel(volunteer, ph), holed)
+    with pytest.raises(KneeInputError, match=r"must be \(P, 3\) points, got an array of shape \(600, 2\)"):
+        estimate_flexion(SkinModel(volunteer, ph), pts[:600, :2])
     with pytest.raises(KneeInputError, match="too little of the shank"):
         estimate_flexion(SkinModel(volunteer, ph), pts[pts[:, 1] > 0.0])
 

@@ -76,7 +76,9 @@ def load_depth_image(path, K, T_world_cam=None, depth_scale: float = 1.0) -> np.
 
 
 def load_point_cloud(path) -> np.ndarray:
-    """Points (P, 3) in mm from a point-cloud file open3d reads (.ply, .pcd, .xyz, .pts)."""
+    """Points (P, 3) in mm from a point-cloud file open3d reads (.ply, .pcd, .xyz, .pts). The points a
+    depth camera writes for pixels without a return are dropped: not finite (NaN, infinite) or exactly at
+    the origin (depth 0 back-projected: the camera's own centre, never a surface it sees)."""
     path = Path(path)
     if not path.is_file():
         raise KneeInputError(f"{path}: no such point-cloud file")
@@ -89,7 +91,11 @@ def load_point_cloud(path) -> np.ndarray:
     pts = np.asarray(pc.points, dtype=float)
     if len(pts) == 0:
         raise KneeInputError(f"{path}: no points read (unsupported or empty file)")
-    return pts
+    valid = np.all(np.isfinite(pts), axis=1) & np.any(pts != 0.0, axis=1)
+    if not valid.any():
+        raise KneeInputError(f"{path}: none of its {len(pts)} points is valid (each is NaN, infinite or at the "
+                             f"origin: pixels without a return)")
+    return pts[valid]
 
 
 def voxel_downsample(points, voxel: float) -> np.ndarray:
