@@ -11,7 +11,6 @@ methods are given: :mod:`knee.app.experiments.case_set`. About 2-5 min on 2 core
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
 import time
 from pathlib import Path
@@ -28,6 +27,7 @@ def main() -> int:
                     help="the truth's tissue holds the subject's patella, moved by the truth mechanism's PF motion")
     args = ap.parse_args()
     from knee.app.experiments.case_set import build_case_set
+    from knee.app.console import take_terminations_as_interrupts
     from knee.foundations.errors import KneeError
     from knee.foundations.files import staged_folder
 
@@ -36,11 +36,7 @@ def main() -> int:
         print(f"build_case_set: {out} exists; not overwritten", file=sys.stderr)
         return 2
     t0 = time.perf_counter()
-
-    def terminated(signum, frame):  # a termination request (kill, a time limit) taken as Ctrl-C: no partial set
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGTERM, terminated)
+    take_terminations_as_interrupts()  # a kill or a time limit leaves no partial set either
     try:
         with staged_folder(out) as tmp:
             build_case_set(tmp, args.seed, args.data if Path(args.data).is_dir() else None,

@@ -25,11 +25,9 @@ def main():
     ap.add_argument("--out", default="compare-priors")
     args = ap.parse_args()
     out = Path(args.out)
+    from knee.app.console import take_terminations_as_interrupts
 
-    def stop(signum, frame):  # a termination is handled as Ctrl-C: the runs are stopped and cleaned up
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGTERM, stop)
+    take_terminations_as_interrupts()  # a kill or a time limit stops and cleans up the runs as Ctrl-C does
     # Ctrl-C handled here even when started with it ignored (in the background): the runs started below then
     # take it too, and each removes its unfinished output
     signal.signal(signal.SIGINT, signal.default_int_handler)

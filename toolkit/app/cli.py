@@ -29,10 +29,9 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
-import signal
 import sys
 
-from knee.app.console import error
+from knee.app.console import error, take_terminations_as_interrupts
 from knee.foundations.errors import (
     EXIT_BAD_INPUT,
     EXIT_INTERNAL,
@@ -216,17 +215,13 @@ def main(argv=None) -> int:
                      f"(KNEE_DEBUG=1 shows the traceback)", EXIT_INTERNAL)
 
 
-def _terminated(signum, frame):
-    raise KeyboardInterrupt
-
-
 def entry() -> None:
     """The installed ``knee`` script: :func:`main`, then exit with its code. A termination request
     (SIGTERM: ``kill``, a scheduler's time limit) is taken as Ctrl-C, so that it too removes every partial
     output. After either, when the partial outputs have been removed and the workers stopped, the process
     leaves at once: the interpreter's own teardown of the loaded numeric libraries takes about a second,
     which a user who pressed Ctrl-C should not wait for."""
-    signal.signal(signal.SIGTERM, _terminated)
+    take_terminations_as_interrupts()
     code = main()
     if code == EXIT_INTERRUPTED:
         sys.stdout.flush()

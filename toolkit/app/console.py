@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import signal
 import sys
 from pathlib import Path
 
@@ -49,6 +50,17 @@ def check_max_steps(n: int) -> None:
     """``--max-steps``: 1 to :data:`MAX_STEPS`."""
     if not 1 <= n <= MAX_STEPS:
         raise KneeInputError(f"--max-steps must be 1-{MAX_STEPS}, got {n}")
+
+
+def _terminated(signum, frame):
+    raise KeyboardInterrupt
+
+
+def take_terminations_as_interrupts() -> None:
+    """From now on a termination request (SIGTERM: ``kill``, a scheduler's time limit) raises
+    ``KeyboardInterrupt`` as Ctrl-C does, so that the same clean-up runs (partial outputs removed, workers
+    stopped). For a program's entry point; the main thread only."""
+    signal.signal(signal.SIGTERM, _terminated)
 
 
 def at_least(lo: float, kind=int, hi: float | None = None):
