@@ -752,6 +752,11 @@ def test_compare_tables_read_back_and_pool_across_case_sets(tmp_path, capsys):
     # case ids mixed, the first c1 would meet the second's (iv) and lose: 0 of 3)
     assert "lower than (iv) in 33 % of 3 cases" in pooled
     assert "2 of 3 within 2 deg" in pooled  # the second set's 3 deg miss
+    png = tmp_path / "pooled.png"
+    assert _run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "b.csv", "--plot", png]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"figure: {png}" in capsys.readouterr().out
+    assert _run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "b.csv", "--plot", png]) == 2
+    _one_line_error(capsys, "exists; not overwritten")
     # bad input: a table twice, a file that is not a comparison table
     assert _run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "a.csv"]) == 2
     _one_line_error(capsys, "given twice")
