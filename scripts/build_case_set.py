@@ -27,7 +27,7 @@ def main() -> int:
                     help="the truth's tissue holds the subject's patella, moved by the truth mechanism's PF motion")
     args = ap.parse_args()
     from knee.app.experiments.case_set import build_case_set
-    from knee.app.console import take_terminations_as_interrupts
+    from knee.app.console import say, take_terminations_as_interrupts
     from knee.foundations.errors import KneeError
     from knee.foundations.files import staged_folder
 
@@ -42,8 +42,7 @@ def main() -> int:
             build_case_set(tmp, args.seed, args.data if Path(args.data).is_dir() else None,
                            tuple(a.strip() for a in args.anatomies.split(",") if a.strip()),
                            tuple(f.strip() for f in args.families.split(",") if f.strip()),
-                           progress=lambda s: print(f"[{time.perf_counter() - t0:5.0f} s] {s}", file=sys.stderr,
-                                                    flush=True), patella=args.patella)
+                           progress=lambda s: say(f"[{time.perf_counter() - t0:5.0f} s] {s}"), patella=args.patella)
     except KneeError as e:
         print(f"build_case_set: error: {e}", file=sys.stderr)
         return 2

@@ -27,10 +27,10 @@ def main():
     out = Path(args.out)
     from knee.app.console import take_terminations_as_interrupts
 
-    take_terminations_as_interrupts()  # a kill or a time limit stops and cleans up the runs as Ctrl-C does
     # Ctrl-C handled here even when started with it ignored (in the background): the runs started below then
-    # take it too, and each removes its unfinished output
+    # take it too, and each removes its unfinished output; a kill or a time limit does the same
     signal.signal(signal.SIGINT, signal.default_int_handler)
+    take_terminations_as_interrupts()
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
     procs = {name: subprocess.Popen([sys.executable, "-m", "knee.app.cli", "compare", "volunteer", *extra, "--quiet",
                                      "--out", str(out / name)], env=env, stdout=subprocess.PIPE, text=True)

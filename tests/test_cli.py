@@ -265,3 +265,21 @@ def test_scripts_refuse_counts_out_of_range_in_one_line(script, argv):
     last = r.stderr.strip().splitlines()[-1]
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert last.startswith(f"{script}.py: error: argument {argv[0]}: must be") and last.endswith(f"got {argv[1]}")
+
+
+def test_an_interrupt_dropped_where_it_landed_stops_at_the_next_progress_report(monkeypatch, capsys):
+    """A signal whose KeyboardInterrupt Python drops (raised in a finaliser or a callback from compiled code)
+    is remembered: the next status line or progress bar raises it again, so the run does not carry on to
+    write results as if nothing had happened."""
+    import knee.app.console as console
+
+    monkeypatch.setattr(console, "_stop_requested", False)
+    console.say("working")
+    console.ProgressBar()(0.5, "half")
+    with contextlib.suppress(KeyboardInterrupt):  # where the exception is dropped
+        console._interrupted(15, None)
+    with pytest.raises(KeyboardInterrupt):
+        console.say("still working")
+    with pytest.raises(KeyboardInterrupt):
+        console.ProgressBar()(0.75, "three quarters")
+    assert "still working" not in capsys.readouterr().err

@@ -52,15 +52,33 @@ def check_max_steps(n: int) -> None:
         raise KneeInputError(f"--max-steps must be 1-{MAX_STEPS}, got {n}")
 
 
-def _terminated(signum, frame):
+#: Set once Ctrl-C or a termination request has arrived (:func:`take_terminations_as_interrupts`).
+_stop_requested = False
+
+
+def _interrupted(signum, frame):
+    global _stop_requested
+    _stop_requested = True
     raise KeyboardInterrupt
 
 
 def take_terminations_as_interrupts() -> None:
     """From now on a termination request (SIGTERM: ``kill``, a scheduler's time limit) raises
     ``KeyboardInterrupt`` as Ctrl-C does, so that the same clean-up runs (partial outputs removed, workers
-    stopped). For a program's entry point; the main thread only."""
-    signal.signal(signal.SIGTERM, _terminated)
+    stopped), and either is remembered: :func:`stop_if_requested` (which the progress bar and :func:`say`
+    call) raises it again, for the rare signal that lands where Python drops the exception its handler
+    raises (in a finaliser or a callback from compiled code; the run would otherwise carry on). Ctrl-C is
+    left ignored where it was (a background job). For a program's entry point; the main thread only."""
+    signal.signal(signal.SIGTERM, _interrupted)
+    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+        signal.signal(signal.SIGINT, _interrupted)
+
+
+def stop_if_requested() -> None:
+    """Raise ``KeyboardInterrupt`` if Ctrl-C or a termination request has arrived
+    (:func:`take_terminations_as_interrupts`)."""
+    if _stop_requested:
+        raise KeyboardInterrupt
 
 
 def at_least(lo: float, kind=int, hi: float | None = None):
@@ -122,6 +140,7 @@ class ProgressBar:
         self.last = ""
 
     def __call__(self, fraction: float, text: str) -> None:
+        stop_if_requested()
         f = min(max(float(fraction), 0.0), 1.0)
         k = int(round(f * self.width))
         line = f"[{'#' * k}{'.' * (self.width - k)}] {100 * f:3.0f}%  {text}"
@@ -136,5 +155,6 @@ class ProgressBar:
 
 def say(text: str) -> None:
     """A status line on standard error (results go to standard output)."""
+    stop_if_requested()
     sys.stderr.write(f"{text}\n")  # one write: a Ctrl-C cannot land between the text and its newline
     sys.stderr.flush()
