@@ -40,12 +40,10 @@ def main() -> int:
 def run(args) -> int:
     from pathlib import Path
 
-    from knee.app.experiments.case_set import is_case_set, read_case_set, run_case_set
+    from knee.app.experiments.case_set import read_case_set, run_case_set
     from knee.foundations.errors import KneeInputError
     from knee.foundations.files import staged_file
 
-    if not is_case_set(args.cases):
-        raise KneeInputError(f"{args.cases} is not a case set (scripts/build_case_set.py builds one)")
     index = read_case_set(args.cases)
     if args.csv and Path(args.csv).exists():
         raise KneeInputError(f"{args.csv} exists; not overwritten (give a new file)")

@@ -21,6 +21,7 @@ import csv
 import statistics
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -37,12 +38,19 @@ def main() -> int:
     ap.add_argument("--method", default="links", choices=("links", "init"))
     ap.add_argument("--csv", default=None, help="write a row per case and stage here")
     args = ap.parse_args()
-    from knee.app.experiments.case_set import diagnose_case_set, is_case_set
+    from knee.app.experiments.case_set import diagnose_case_set, read_case_set
+    from knee.foundations.errors import KneeError
+    from knee.foundations.files import staged_file
     from knee.models.fem.methods import STAGES
     from knee.models.prior import MIN_SEEN_SHANK  # the cases that see the shank, as knee compare counts them
 
-    if not is_case_set(args.cases):
-        print(f"error: {args.cases} is not a case set (scripts/build_case_set.py builds one)", file=sys.stderr)
+    if args.csv and Path(args.csv).exists():
+        print(f"error: {args.csv} exists; not overwritten (give a new file)", file=sys.stderr)
+        return 2
+    try:
+        read_case_set(args.cases)
+    except KneeError as e:
+        print(f"error: {e}", file=sys.stderr)
         return 2
     only = [o for o in args.only.split(",") if o]
     select = (lambda c: any(o in c["id"] for o in only)) if only else None
@@ -70,7 +78,7 @@ def main() -> int:
                             **{f"femur_translation_{a}_mm": v for a, v in zip("xyz", s.femur_translation_mm)},
                             **{f"relative_rotation_{a}_deg": v for a, v in zip("xyz", s.relative_rotation_deg)}})
     if args.csv and records:
-        with open(args.csv, "w", newline="") as f:
+        with staged_file(args.csv) as tmp, open(tmp, "w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=list(records[0]))
             w.writeheader()
             w.writerows(records)

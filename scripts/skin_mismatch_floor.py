@@ -62,7 +62,7 @@ def main() -> int:
                     help="also the tissue's floor at 0 mm: the femur placed on the association model's skin posed "
                          "with the true bones (about 1 s per case)")
     args = ap.parse_args()
-    from knee.app.experiments.case_set import is_case_set
+    from knee.app.experiments.case_set import read_case_set
     from knee.app.experiments.skin_floor import skin_floor
     from knee.foundations.errors import KneeError
 
@@ -73,8 +73,10 @@ def main() -> int:
         if given and Path(given).exists():
             print(f"error: {given} exists; not overwritten (give a new file)", file=sys.stderr)
             return 2
-    if not is_case_set(args.cases):
-        print(f"error: {args.cases} is not a case set (scripts/build_case_set.py builds one)", file=sys.stderr)
+    try:
+        read_case_set(args.cases)
+    except KneeError as e:
+        print(f"error: {e}", file=sys.stderr)
         return 2
     t0 = time.perf_counter()
 

@@ -249,28 +249,22 @@ def test_diagnosis_ends_with_the_compared_bones(small_case_set):
         diagnose_case_set(small_case_set, "kinematics")
 
 
-def test_diagnosis_script_refuses_bad_input_in_one_line(small_case_set, tmp_path, capsys):
-    """scripts/diagnose_case_set.py: a folder that is not a case set and a selection that matches no case
-    each get one line naming what is wrong, exit code 2, and no CSV written."""
-    out = tmp_path / "stages.csv"
-    for argv, says in (([tmp_path / "nothing"], "is not a case set"),
-                       ([small_case_set, "--only", "no-such-case"], "no case of")):
-        assert _run_script("diagnose_case_set", [*argv, "--csv", out]) == 2
-        _one_line_error(capsys, says)
-        assert not out.exists()
-
-
-def test_bench_script_refuses_bad_input_in_one_line(small_case_set, tmp_path, capsys):
-    """scripts/bench_case_set.py: not a case set, a selection of no case, an existing --csv: one line each,
-    exit code 2, the existing file untouched and nothing run."""
+@pytest.mark.parametrize("script, selects_none", [("diagnose_case_set", "no case of"),
+                                                  ("bench_case_set", "selects none of the"),
+                                                  ("skin_mismatch_floor", None)])
+def test_case_set_scripts_refuse_bad_input_in_one_line(script, selects_none, small_case_set, tmp_path, capsys):
+    """The case-set scripts: a folder that is not a case set, a selection that matches no case, an existing
+    --csv: one line each naming what is wrong, exit code 2, no CSV written and an existing one untouched."""
     out = tmp_path / "rows.csv"
-    for argv, says in (([tmp_path / "nothing"], "is not a case set"),
-                       ([small_case_set, "--only", "no-such-case"], "selects none of the")):
-        assert _run_script("bench_case_set", [*argv, "--csv", out]) == 2
+    bad = [([tmp_path / "nothing"], "is not a case set")]
+    if selects_none:
+        bad.append(([small_case_set, "--only", "no-such-case"], selects_none))
+    for argv, says in bad:
+        assert _run_script(script, [*argv, "--csv", out]) == 2
         _one_line_error(capsys, says)
         assert not out.exists()
     out.write_text("kept\n")
-    assert _run_script("bench_case_set", [small_case_set, "--csv", out]) == 2
+    assert _run_script(script, [small_case_set, "--csv", out]) == 2
     _one_line_error(capsys, "exists; not overwritten")
     assert out.read_text() == "kept\n"
 
@@ -342,6 +336,8 @@ def test_case_set_index_errors(tmp_path):
     from knee.app.experiments.case_set import read_case_set
     from knee.foundations.errors import KneeInputError
 
+    with pytest.raises(KneeInputError, match=f"{tmp_path} is not a case set"):
+        read_case_set(tmp_path)
     (tmp_path / "case-set.toml").write_text('format = "other"\n')
     with pytest.raises(KneeInputError, match="not a case set"):
         read_case_set(tmp_path)
@@ -757,6 +753,9 @@ def test_compare_tables_read_back_and_pool_across_case_sets(tmp_path, capsys):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"figure: {png}" in capsys.readouterr().out
     assert _run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "b.csv", "--plot", png]) == 2
     _one_line_error(capsys, "exists; not overwritten")
+    assert _run_script("pool_case_sets", [tmp_path / "a.csv", "--plot", tmp_path / "pooled.jpg"]) == 2
+    _one_line_error(capsys, "give a .png file")
+    assert not (tmp_path / "pooled.jpg").exists()
     # bad input: a table twice, a file that is not a comparison table
     assert _run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "a.csv"]) == 2
     _one_line_error(capsys, "given twice")

@@ -283,3 +283,27 @@ def test_an_interrupt_dropped_where_it_landed_stops_at_the_next_progress_report(
     with pytest.raises(KeyboardInterrupt):
         console.ProgressBar()(0.75, "three quarters")
     assert "still working" not in capsys.readouterr().err
+
+
+def test_real_data_and_standard_case_scripts_refuse_bad_input_in_one_line(tmp_path):
+    """scripts/real_knee_cases.py checks --methods and its output before reading any data, and
+    scripts/fem_standard_case.py says in one line that a flexion lies outside the mechanism's assembly range
+    (129.3 deg for volunteer): exit code 2, no traceback, an existing output untouched."""
+    scripts = Path(__file__).resolve().parents[1] / "scripts"
+
+    def last_error(*argv):
+        r = subprocess.run([sys.executable, *map(str, argv)], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 2 and "Traceback" not in r.stderr
+        return r.stderr.strip().splitlines()[-1]
+
+    none = tmp_path / "no-data"
+    assert last_error(scripts / "real_knee_cases.py", "--data", none, "--methods", "links,walk") == (
+        "error: --methods must be a comma list of paper, init, links, kinematics, got 'links,walk'")
+    kept = tmp_path / "kept.csv"
+    kept.write_text("kept\n")
+    assert last_error(scripts / "real_knee_cases.py", "--data", none, "--out", kept) == (
+        f"error: {kept} exists; not overwritten (give a new file)")
+    assert kept.read_text() == "kept\n"
+    assert last_error(scripts / "real_knee_cases.py", "--data", none).startswith(f"error: {none}")
+    line = last_error(scripts / "fem_standard_case.py", "--flexion", "140")
+    assert line.startswith("error: flexion 140.00 deg is outside the assembly range") and "volunteer" in line

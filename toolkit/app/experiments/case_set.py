@@ -227,14 +227,12 @@ def _anatomies(out: Path, data, seed: int, names, patella: bool = False) -> list
             truth = Mechanism.from_name("volunteer")
             prior_of = truth.params
             note = "the bundled volunteer's synthetic subject; truth mechanism volunteer"
-        elif name == "visible-human-male":
+        else:  # "visible-human-male" (the names are checked by build_case_set)
             folder = visible_human_subject(data, out / "subjects" / name)
             template, s = template_prior(subject_anatomy(load_subject(folder)), with_pf=patella)
             truth = Mechanism(template)
             prior_of = dataclasses.replace(template, pf=None)  # TF only, with the patella or without
             note = f"the Visible Human Male's right knee; truth mechanism volunteer scaled by {s:.3f} to its width"
-        else:
-            raise KneeInputError(f"unknown anatomy {name!r}: phantom or visible-human-male")
         if patella:
             note += "; the truth's tissue holds the patella, moved by the truth mechanism's PF motion"
         prior, k = _assembling_prior(prior_of, seed)
@@ -300,11 +298,9 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
                     dev = random_pose(case_rng(seed, entry.name, family, f"{fl:g}"), DEVIATION_DEG, DEVIATION_MM,
                                       np.zeros(3))
                     poses.append((family, fl, Tm @ invert_poses(T_scan) @ anatomy.tibia_pose @ dev))
-            elif family == "measured":
+            else:  # "measured" (the families are checked above)
                 for fl, Tm in zip(measured_flexions, measured_poses(data, anatomy, measured_flexions)):
                     poses.append((family, fl, Tm))
-            else:
-                raise KneeInputError(f"unknown case family {family!r}")
         centre = np.array([0.0, anatomy.joint_y, 0.0])
         for family, fl, T_tibia in poses:
             t0 = time.perf_counter()
@@ -425,6 +421,8 @@ def read_case_set(folder) -> dict:
     """The case set's index (``case-set.toml``), checked: a clear error naming what is wrong."""
     folder = Path(folder)
     path = folder / "case-set.toml"
+    if not is_case_set(folder):
+        raise KneeInputError(f"{folder} is not a case set (scripts/build_case_set.py builds one)")
     try:
         index = tomllib.loads(read_text(path))
     except tomllib.TOMLDecodeError as e:
