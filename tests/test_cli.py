@@ -285,6 +285,33 @@ def test_an_interrupt_dropped_where_it_landed_stops_at_the_next_progress_report(
     assert "still working" not in capsys.readouterr().err
 
 
+def test_a_librarys_log_of_a_caught_interrupt_is_not_printed(monkeypatch):
+    """A library that catches the interrupt logs it with its traceback (trimesh's vertex normals do, then
+    fall back): that record is dropped once interrupts are taken, other warnings are kept."""
+    import logging
+    import signal as signal_module
+
+    import knee.app.console as console
+
+    monkeypatch.setattr(signal_module, "signal", lambda *a: None)  # the test process's handlers left alone
+    stream = io.StringIO()
+    handler = logging.StreamHandler(stream)
+    root = logging.getLogger()
+    root.addHandler(handler)
+    try:
+        console.take_terminations_as_interrupts()
+        log = logging.getLogger("some.library")
+        try:
+            raise KeyboardInterrupt
+        except BaseException:
+            log.warning("unable to use sparse matrix, falling back!", exc_info=True)
+        log.warning("a warning of its own")
+    finally:
+        root.removeHandler(handler)
+    assert stream.getvalue() == "a warning of its own\n"
+    assert console._not_an_interrupt in logging.lastResort.filters
+
+
 def test_real_data_and_standard_case_scripts_refuse_bad_input_in_one_line(tmp_path):
     """scripts/real_knee_cases.py checks --methods and its output before reading any data, and
     scripts/fem_standard_case.py says in one line that a flexion lies outside the mechanism's assembly range

@@ -7,6 +7,7 @@ Every check raises :class:`~knee.foundations.errors.KneeInputError` with one lin
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import signal
 import sys
@@ -62,13 +63,24 @@ def _interrupted(signum, frame):
     raise KeyboardInterrupt
 
 
+def _not_an_interrupt(record) -> bool:
+    """A logging filter: drop a record that carries the interrupt a library caught (trimesh, for one,
+    catches every exception in its vertex normals, logs it with its traceback and falls back)."""
+    return not (record.exc_info and isinstance(record.exc_info[1], KeyboardInterrupt))
+
+
 def take_terminations_as_interrupts() -> None:
     """From now on a termination request (SIGTERM: ``kill``, a scheduler's time limit) raises
     ``KeyboardInterrupt`` as Ctrl-C does, so that the same clean-up runs (partial outputs removed, workers
     stopped), and either is remembered: :func:`stop_if_requested` (which the progress bar and :func:`say`
     call) raises it again, for the rare signal that lands where Python drops the exception its handler
-    raises (in a finaliser or a callback from compiled code; the run would otherwise carry on). Ctrl-C is
-    left ignored where it was (a background job). For a program's entry point; the main thread only."""
+    raises (in a finaliser, a callback from compiled code, or a library that catches every exception; the
+    run would otherwise carry on), and the warning such a library logs with the interrupt's traceback is
+    not printed. Ctrl-C is left ignored where it was (a background job). For a program's entry point; the
+    main thread only."""
+    for handler in [logging.lastResort, *logging.getLogger().handlers]:
+        if handler is not None and _not_an_interrupt not in handler.filters:
+            handler.addFilter(_not_an_interrupt)
     signal.signal(signal.SIGTERM, _interrupted)
     if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
         signal.signal(signal.SIGINT, _interrupted)
