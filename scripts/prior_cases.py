@@ -7,7 +7,7 @@ flexion 30:120:15 and three camera placements (oblique 35 deg, frontal 0 deg, la
 elevation): the flexion estimate's error, the fit quality, the wall time and the target point errors of the
 mechanism alone at the estimated angle (epiphysis and ACL/PCL footprints, per bone).
 
-    .venv/bin/python scripts/prior_cases.py [--out prior_cases.csv]
+    .venv/bin/python scripts/prior_cases.py [--out prior_cases.csv] [--flexions 30:120:15] [--azimuths 35,0,70]
 """
 
 from __future__ import annotations
@@ -23,15 +23,9 @@ from pathlib import Path
 import numpy as np
 
 
-def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--out", default=None)
-    args = ap.parse_args()
-    if args.out and Path(args.out).exists():
-        print(f"error: {args.out} exists; not overwritten (give a new file)", file=sys.stderr)
-        sys.exit(2)
+def _cases(flexions, azimuths) -> list[dict]:
+    """One row per camera placement and true flexion."""
     from knee.app.experiments.cases import phantom_targets
-    from knee.foundations.files import staged_file
     from knee.fitting.optimize import perturb_endpoints
     from knee.foundations.conventions import joint_to_pose
     from knee.foundations.pointclouds import backproject
@@ -49,9 +43,9 @@ def main():
     skin = SkinModel(prior, ph_p)  # built once: its parts are meshed and sampled once, moved per candidate
     rng = np.random.default_rng(0)
     rows = []
-    for az in (35.0, 0.0, 70.0):
+    for az in azimuths:
         cam = default_camera(azimuth_deg=az)
-        for deg in range(30, 121, 15):
+        for deg in flexions:
             tf, pf, _ = truth.solve(math.radians(deg))
             truth_skin = ph_t.skin(joint_to_pose(tf), joint_to_pose(pf))
             pts = backproject(DepthNoise().apply(render_depth(truth_skin.vertices, truth_skin.faces, cam), rng), cam.K,
@@ -68,10 +62,48 @@ def main():
                          "femur_footprints_mm": e.femur.footprints.mean, "tibia_footprints_mm": e.tibia.footprints.mean,
                          "femur_epiphysis_mm": e.femur.epiphysis.mean, "tibia_epiphysis_mm": e.tibia.epiphysis.mean})
             r = rows[-1]
-            print(f"camera {az:4.0f} deg, flexion {deg:3d}: estimate {r['flexion_est_deg']:6.2f} ({r['error_deg']:+.2f}) "
+            print(f"camera {az:4.0f} deg, flexion {deg:5.1f}: estimate {r['flexion_est_deg']:6.2f} ({r['error_deg']:+.2f}) "
                   f"in {wall:.1f} s; footprints femur {r['femur_footprints_mm']:.2f} tibia {r['tibia_footprints_mm']:.2f} mm"
                   + (f"  [{r['warning'][:60]}...]" if r["warning"] else ""), flush=True)
+    return rows
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--flexions", default="30:120:15", help="true flexions, deg: FROM:TO:STEP or a comma list")
+    ap.add_argument("--azimuths", default="35,0,70",
+                    help="camera placements: azimuths, deg, a comma list (35 oblique, 0 frontal, 70 lateral)")
+    args = ap.parse_args()
+    from knee.app.console import flexion_list
+    from knee.foundations.errors import KneeError
+    from knee.foundations.files import staged_file
+
+    if args.out and Path(args.out).exists():
+        print(f"error: {args.out} exists; not overwritten (give a new file)", file=sys.stderr)
+        return 2
+    try:
+        flexions = flexion_list(args.flexions)
+        azimuths = [float(a) for a in args.azimuths.split(",")]
+        if not all(math.isfinite(a) and -180.0 <= a <= 180.0 for a in azimuths):
+            raise ValueError
+    except KneeError as e:
+        print(f"error: {str(e).replace('--flexion ', '--flexions ')}", file=sys.stderr)
+        return 2
+    except ValueError:
+        print(f"error: --azimuths must be a comma list of degrees within -180-180, got {args.azimuths!r}",
+              file=sys.stderr)
+        return 2
+    try:
+        rows = _cases(flexions, azimuths)
+    except KneeError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     ok = [r for r in rows if not r["at_range_end"]]  # the truth beyond the prior's range: no measurement
+    if not ok:
+        print(f"error: none of the {len(rows)} cases lies within the prior's range; nothing to summarise",
+              file=sys.stderr)
+        return 1
     print(f"\nin-range cases: {len(ok)} of {len(rows)}; |flexion error| median "
           f"{statistics.median(abs(r['error_deg']) for r in ok):.2f} deg, max {max(abs(r['error_deg']) for r in ok):.2f} deg, "
           f"within 2 deg: {sum(abs(r['error_deg']) <= 2 for r in ok)}")
@@ -85,7 +117,8 @@ def main():
             w = csv.DictWriter(fh, fieldnames=list(rows[0]))
             w.writeheader()
             w.writerows(rows)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

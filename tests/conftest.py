@@ -39,3 +39,24 @@ def visible_human(shared_data):
     from knee.fitting.reference_data import visible_human_knee
 
     return visible_human_knee(shared_data)
+
+
+@pytest.fixture
+def run_script():
+    """``run_script(NAME, argv)``: ``scripts/NAME.py``'s main() run in this process with ``argv`` (sys.argv
+    restored after); its exit code."""
+    import importlib.util
+    import sys
+
+    def run(name: str, argv) -> int:
+        path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
+        spec = importlib.util.spec_from_file_location(name, path)
+        script = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(script)
+        old = sys.argv
+        sys.argv = [f"{name}.py", *map(str, argv)]
+        try:
+            return script.main()
+        finally:
+            sys.argv = old
+    return run

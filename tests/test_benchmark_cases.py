@@ -252,7 +252,7 @@ def test_diagnosis_ends_with_the_compared_bones(small_case_set):
 @pytest.mark.parametrize("script, selects_none", [("diagnose_case_set", "no case of"),
                                                   ("bench_case_set", "selects none of the"),
                                                   ("skin_mismatch_floor", None)])
-def test_case_set_scripts_refuse_bad_input_in_one_line(script, selects_none, small_case_set, tmp_path, capsys):
+def test_case_set_scripts_refuse_bad_input_in_one_line(script, selects_none, small_case_set, tmp_path, capsys, run_script):
     """The case-set scripts: a folder that is not a case set, a selection that matches no case, an existing
     --csv: one line each naming what is wrong, exit code 2, no CSV written and an existing one untouched."""
     out = tmp_path / "rows.csv"
@@ -260,30 +260,13 @@ def test_case_set_scripts_refuse_bad_input_in_one_line(script, selects_none, sma
     if selects_none:
         bad.append(([small_case_set, "--only", "no-such-case"], selects_none))
     for argv, says in bad:
-        assert _run_script(script, [*argv, "--csv", out]) == 2
+        assert run_script(script, [*argv, "--csv", out]) == 2
         _one_line_error(capsys, says)
         assert not out.exists()
     out.write_text("kept\n")
-    assert _run_script(script, [small_case_set, "--csv", out]) == 2
+    assert run_script(script, [small_case_set, "--csv", out]) == 2
     _one_line_error(capsys, "exists; not overwritten")
     assert out.read_text() == "kept\n"
-
-
-def _run_script(name: str, argv) -> int:
-    """``scripts/NAME.py``'s main() run with ``argv`` (sys.argv restored after); its exit code."""
-    import importlib.util
-    import sys
-    from pathlib import Path
-
-    spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
-    old = sys.argv
-    sys.argv = [f"{name}.py", *map(str, argv)]
-    try:
-        return script.main()
-    finally:
-        sys.argv = old
 
 
 def _one_line_error(capsys, says: str) -> None:
@@ -612,7 +595,7 @@ def test_skin_floor_recovers_a_known_motion_of_the_leg(small_case_set):
             assert np.linalg.norm(E[:3, :3] @ [0.0, anatomy.joint_y, 0.0] + E[:3, 3] - [0.0, anatomy.joint_y, 0.0]) < 0.1, kind
 
 
-def test_skin_floor_on_the_case_set_and_its_script(small_case_set, tmp_path, capsys):
+def test_skin_floor_on_the_case_set_and_its_script(small_case_set, tmp_path, capsys, run_script):
     """The floor is measured on the cases whose view was rendered at 0 mm too (here the paper's at 1 mm),
     is nonzero (the mismatch field moves the registration) and comes out of the script as tables; a case
     set without such twins, a CSV that is not knee compare's, --plot without --compare and an output file
@@ -632,7 +615,7 @@ def test_skin_floor_on_the_case_set_and_its_script(small_case_set, tmp_path, cap
     compare.write_text("case,method,femur_footprints_mm,tibia_footprints_mm\n"
                        "phantom-mechanism-40-1mm-paper,links,1.0,3.0\n")
     png = tmp_path / "floor.png"
-    assert _run_script("skin_mismatch_floor", [small_case_set, "--compare", compare, "--plot", png, "--tissue"]) == 0
+    assert run_script("skin_mismatch_floor", [small_case_set, "--compare", compare, "--plot", png, "--tissue"]) == 0
     assert png.stat().st_size > 0
     out = capsys.readouterr().out
     line, = [ln for ln in out.splitlines() if ln.startswith("| 1 mm | 1 | ")]
@@ -649,7 +632,7 @@ def test_skin_floor_on_the_case_set_and_its_script(small_case_set, tmp_path, cap
                        ([small_case_set, "--plot", tmp_path / "no.png"], "--plot needs --compare"),
                        ([small_case_set, "--compare", compare, "--plot", png], "exists"),
                        ([small_case_set, "--csv", bad], "exists")):
-        assert _run_script("skin_mismatch_floor", argv) == 2
+        assert run_script("skin_mismatch_floor", argv) == 2
         _one_line_error(capsys, says)
     assert png.read_bytes() == before and bad.read_text() == "a,b\n1,2\n"
     shutil.rmtree(tmp_path / "sub")
@@ -717,7 +700,7 @@ def test_tissue_floor_is_zero_on_the_models_own_posed_skin(small_case_set):
     assert case == c["id"] and 0.02 < err < 6.0
 
 
-def test_compare_tables_read_back_and_pool_across_case_sets(tmp_path, capsys):
+def test_compare_tables_read_back_and_pool_across_case_sets(tmp_path, capsys, run_script):
     """A table :func:`write_csv` wrote reads back as the same rows (a failed run's empty figures as their
     defaults), and the pooling script's targets over two tables are the medians over the union, each set's
     (iii) compared with (iv) on its own case even where the two sets share case ids."""
@@ -741,7 +724,7 @@ def test_compare_tables_read_back_and_pool_across_case_sets(tmp_path, capsys):
     back = read_csv(tmp_path / "a.csv", CaseRow)
     assert back[:4] == a[:4]
     assert back[4].failed == "diverged" and back[4].steps == 0 and back[4].femur_footprints_mm != back[4].femur_footprints_mm
-    assert _run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "b.csv"]) == 0
+    assert run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "b.csv"]) == 0
     pooled = capsys.readouterr().out.split("## pooled")[1]
     assert f"at 0 and 1 mm skin mismatch: {statistics.median([1.5, 2.5, 3.5]):.2f} mm over 3 cases" in pooled
     # c1 of the first set beats its (iv), c2 does not, c1 of the second does not: 1 of 3 (with the sets'
@@ -749,18 +732,18 @@ def test_compare_tables_read_back_and_pool_across_case_sets(tmp_path, capsys):
     assert "lower than (iv) in 33 % of 3 cases" in pooled
     assert "2 of 3 within 2 deg" in pooled  # the second set's 3 deg miss
     png = tmp_path / "pooled.png"
-    assert _run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "b.csv", "--plot", png]) == 0
+    assert run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "b.csv", "--plot", png]) == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"figure: {png}" in capsys.readouterr().out
-    assert _run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "b.csv", "--plot", png]) == 2
+    assert run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "b.csv", "--plot", png]) == 2
     _one_line_error(capsys, "exists; not overwritten")
-    assert _run_script("pool_case_sets", [tmp_path / "a.csv", "--plot", tmp_path / "pooled.jpg"]) == 2
+    assert run_script("pool_case_sets", [tmp_path / "a.csv", "--plot", tmp_path / "pooled.jpg"]) == 2
     _one_line_error(capsys, "give a .png file")
     assert not (tmp_path / "pooled.jpg").exists()
     # bad input: a table twice, a file that is not a comparison table
-    assert _run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "a.csv"]) == 2
+    assert run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "a.csv"]) == 2
     _one_line_error(capsys, "given twice")
     (tmp_path / "x.csv").write_text("a,b\n1,2\n")
-    assert _run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "x.csv"]) == 2
+    assert run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "x.csv"]) == 2
     _one_line_error(capsys, "not a comparison table")
 
 

@@ -482,3 +482,31 @@ def test_the_tibia_correction_weighs_points_that_err_together_as_few(volunteer):
     assert moved.rms_after < 0.5 < moved.rms_before
     below = np.array([[0.0, -100.0, 0.0]])
     assert np.linalg.norm(transform_points(moved.T, below) - transform_points(moved.T_prior @ small_pose(xi), below)) < 1.0
+
+
+def test_the_prior_cases_script_runs_the_cases_asked_and_refuses_bad_input(tmp_path, capsys, run_script):
+    """scripts/prior_cases.py (the fixed benchmark of the flexion estimate and of method (iv)) on two of its
+    cases: a row per camera and flexion asked, the oblique view's flexion within 2 deg and the shank seen, the
+    frontal view of a 90 deg knee flagged as not seeing it; bad choices and an existing output refused in one
+    line with nothing written. Catches a script that stops at its first case (as it once did, when the truth's
+    skin shadowed the skin model) or that writes rows for other cases than those asked."""
+    import csv
+
+    out = tmp_path / "cases.csv"
+    assert run_script("prior_cases", ["--flexions", "90", "--azimuths", "35,0", "--out", out]) == 0
+    rows = list(csv.DictReader(out.open()))
+    assert [(float(r["camera_azimuth_deg"]), float(r["flexion_true_deg"])) for r in rows] == [(35.0, 90.0), (0.0, 90.0)]
+    oblique, frontal = rows
+    assert abs(float(oblique["flexion_est_deg"]) - 90.0) <= 2.0 and int(oblique["shank_points"]) > 500
+    assert math.isclose(float(oblique["error_deg"]), float(oblique["flexion_est_deg"]) - 90.0)
+    assert not oblique["warning"] and "shank is hardly seen" in frontal["warning"]
+    assert all(0.0 < float(r[k]) < 20.0 for r in rows for k in ("femur_footprints_mm", "tibia_footprints_mm"))
+    capsys.readouterr()
+    for argv, says in ((["--flexions", "30,200"], "--flexions must give 1-50 angles"),
+                       (["--azimuths", "35,x"], "--azimuths must be a comma list"),
+                       (["--out", out], "exists; not overwritten")):
+        before = out.read_bytes()
+        assert run_script("prior_cases", argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error:") and says in err[0], err
+        assert out.read_bytes() == before
