@@ -201,3 +201,23 @@ def test_cli_contact_against_flexion(tmp_path):
     r = subprocess.run([sys.executable, "-m", "knee.app.cli", "contact", "volunteer", "--load", "-5", "--out",
                         str(tmp_path / "d")], capture_output=True, text=True)
     assert r.returncode == 2 and "--load" in r.stderr
+
+
+def test_the_bundled_normative_cycle_is_what_its_script_generates():
+    """models/data/gait-normative.csv is reproducible: scripts/make_normative_gait.py generates it byte for
+    byte (a hand edit of the file, or of the script's key values without regenerating it, fails here), and
+    it passes through the textbook key values it is drawn through (knee 5 deg at heel strike and 60 deg in
+    swing at 73 %, the vertical force zero in swing)."""
+    import importlib.util
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("make_normative_gait", root / "scripts" / "make_normative_gait.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    bundled = (root / "models" / "data" / "gait-normative.csv").read_text(encoding="utf-8")
+    assert script.text() == bundled
+    header, t = script.table()
+    col = {h: t[:, i] for i, h in enumerate(header)}
+    assert col["knee_flexion_deg"][0] == pytest.approx(5.0) and col["knee_flexion_deg"][73] == pytest.approx(60.0)
+    assert np.all(col["grf_vertical_bw"][63:] == 0.0) and np.all(np.isnan(col["cop_anterior_mm"][63:]))
