@@ -25,6 +25,10 @@ def main():
     ap.add_argument("--out", default="compare-priors")
     args = ap.parse_args()
     out = Path(args.out)
+    taken = [out / name for name in SETS if (out / name).exists()]
+    if out.exists() and not out.is_dir() or taken:
+        print(f"error: {out if not taken else taken[0]} exists; not overwritten (give a new --out)", file=sys.stderr)
+        return 2
     from knee.app.console import take_terminations_as_interrupts
 
     # Ctrl-C handled here even when started with it ignored (in the background): the runs started below then
@@ -54,8 +58,8 @@ def main():
                 p.wait(timeout=30)
             except subprocess.TimeoutExpired:
                 p.kill()
-    sys.exit(failed)
+    return failed
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -256,7 +256,9 @@ def test_at_least_refuses_counts_and_numbers_out_of_range():
 @pytest.mark.parametrize("script, argv", [("bench_mechanism", ["--repeat", "0"]), ("bench_demo", ["--runs", "-1"]),
                                           ("bench_prior", ["--repeat", "0"]),
                                           ("fem_stability", ["--steps", "0"]),
-                                          ("fem_standard_case", ["--flexion", "500"])])
+                                          ("fem_standard_case", ["--flexion", "500"]),
+                                          ("bench_fem", ["--steps", "0"]), ("bench_fit", ["--repeat", "0"]),
+                                          ("bench_gait", ["--repeat", "0"]), ("real_knee_fit", ["--seed", "-1"])])
 def test_scripts_refuse_counts_out_of_range_in_one_line(script, argv):
     """A benchmark script given a count or an angle out of range stops at its arguments, one line, before
     any work (a zero repeat count had ended in a median of nothing)."""
@@ -313,9 +315,11 @@ def test_a_librarys_log_of_a_caught_interrupt_is_not_printed(monkeypatch):
 
 
 def test_real_data_and_standard_case_scripts_refuse_bad_input_in_one_line(tmp_path):
-    """scripts/real_knee_cases.py checks --methods and its output before reading any data, and
+    """scripts/real_knee_cases.py checks --methods and its output before reading any data,
     scripts/fem_standard_case.py says in one line that a flexion lies outside the mechanism's assembly range
-    (129.3 deg for volunteer): exit code 2, no traceback, an existing output untouched."""
+    (129.3 deg for volunteer), scripts/real_knee_fit.py names the data file it misses and
+    scripts/compare_priors.py refuses an output that holds a run already or is a file: exit code 2, no
+    traceback, an existing output untouched."""
     scripts = Path(__file__).resolve().parents[1] / "scripts"
 
     def last_error(*argv):
@@ -334,3 +338,11 @@ def test_real_data_and_standard_case_scripts_refuse_bad_input_in_one_line(tmp_pa
     assert last_error(scripts / "real_knee_cases.py", "--data", none).startswith(f"error: {none}")
     line = last_error(scripts / "fem_standard_case.py", "--flexion", "140")
     assert line.startswith("error: flexion 140.00 deg is outside the assembly range") and "volunteer" in line
+    assert last_error(scripts / "real_knee_fit.py", "--data", none).startswith(f"error: body-transform table {none}")
+    taken = tmp_path / "runs"
+    (taken / "oblique").mkdir(parents=True)
+    assert last_error(scripts / "compare_priors.py", "--out", taken) == (
+        f"error: {taken / 'oblique'} exists; not overwritten (give a new --out)")
+    assert last_error(scripts / "compare_priors.py", "--out", kept) == (
+        f"error: {kept} exists; not overwritten (give a new --out)")
+    assert kept.read_text() == "kept\n" and list(taken.iterdir()) == [taken / "oblique"]
