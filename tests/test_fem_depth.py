@@ -105,11 +105,26 @@ def test_depth_image_and_point_cloud_files(tmp_path, knee_like):
         backproject(d.ravel(), cam.K)
     with pytest.raises(KneeInputError, match="no such depth image"):
         load_depth_image(tmp_path / "missing.png", cam.K)
+    gray = tmp_path / "gray.png"
+    o3d.io.write_image(str(gray), o3d.geometry.Image(np.full(d.shape, 200, np.uint8)))
+    with pytest.raises(KneeInputError, match="gray.png: a depth image must be a 16-bit PNG, got 8-bit"):
+        load_depth_image(gray, cam.K)
+    np.save(tmp_path / "none.npy", np.where(d > 0, np.nan, -1.0))
+    with pytest.raises(KneeInputError, match="none.npy: no pixel holds a depth"):
+        load_depth_image(tmp_path / "none.npy", cam.K)
     empty = tmp_path / "empty.ply"
     empty.write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
                      "property float z\nend_header\n")
     with pytest.raises(KneeInputError, match="no points"):
         load_point_cloud(empty)
+    stl = tmp_path / "knee.stl"
+    knee_like.export(stl)
+    with pytest.raises(KneeInputError, match=r"knee.stl: not a point-cloud format .*\.ply, \.pcd, \.xyz, \.pts"):
+        load_point_cloud(stl)
+    two = tmp_path / "two.xyz"
+    two.write_text("1 2\n3 4\n")
+    with pytest.raises(KneeInputError, match="not three numbers x y z per line"):
+        load_point_cloud(two)
     with pytest.raises(KneeInputError, match="coincide"):
         Camera.looking_at([1, 2, 3], [1, 2, 3])
     with pytest.raises(KneeInputError, match="parallel"):

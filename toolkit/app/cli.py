@@ -176,7 +176,7 @@ def build_parser() -> argparse.ArgumentParser:
     fe.add_argument("--camera", default="oblique", help="oblique, frontal, lateral or AZ,EL,DIST (oblique)")
     fe.add_argument("--no-noise", action="store_true", help="no depth noise")
     fe.add_argument("--seed", type=seed, default=0, help="seed of the depth noise (0)")
-    fe.add_argument("--cloud", help="a measured point cloud (.ply/.pcd/.xyz, mm) instead of the virtual camera")
+    fe.add_argument("--cloud", help="a measured point cloud (.ply/.pcd/.xyz/.pts, mm) instead of the virtual camera")
     fe.add_argument("--depth", help="a measured depth image (16-bit PNG or .npy) instead of the virtual camera")
     fe.add_argument("--intrinsics", help="fx,fy,cx,cy of the depth image (pixels)")
     fe.add_argument("--depth-scale", type=float, default=1.0, help="depth units to mm (1)")

@@ -63,9 +63,16 @@ def read_depth_image(path) -> np.ndarray:
         depth = np.asarray(img)
         if depth.size == 0 or depth.ndim == 0:
             raise KneeInputError(f"{path}: not a readable depth image (a 16-bit PNG or a 2-D .npy array)")
+        if depth.ndim == 2 and depth.dtype != np.uint16:
+            # an 8-bit image holds intensities (a colour or infrared frame), not depths
+            raise KneeInputError(f"{path}: a depth image must be a 16-bit PNG, got {depth.dtype.itemsize * 8}-bit "
+                                 "(a colour or infrared frame?)")
     if depth.ndim != 2:
         raise KneeInputError(f"{path}: a depth image must be 2-D, got shape {depth.shape}")
-    return depth.astype(float)
+    depth = depth.astype(float)
+    if not np.any(np.isfinite(depth) & (depth > 0)):
+        raise KneeInputError(f"{path}: no pixel holds a depth (each is 0, negative or not finite)")
+    return depth
 
 
 def load_depth_image(path, K, T_world_cam=None, depth_scale: float = 1.0) -> np.ndarray:
@@ -75,6 +82,10 @@ def load_depth_image(path, K, T_world_cam=None, depth_scale: float = 1.0) -> np.
     return backproject(read_depth_image(path), K, T_world_cam, depth_scale)
 
 
+#: The point-cloud files :func:`load_point_cloud` reads (open3d's readers; .xyz and .pts: x y z per line).
+CLOUD_FORMATS = (".ply", ".pcd", ".xyz", ".pts")
+
+
 def load_point_cloud(path) -> np.ndarray:
     """Points (P, 3) in mm from a point-cloud file open3d reads (.ply, .pcd, .xyz, .pts). The points a
     depth camera writes for pixels without a return are dropped: not finite (NaN, infinite) or exactly at
@@ -82,6 +93,9 @@ def load_point_cloud(path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise KneeInputError(f"{path}: no such point-cloud file")
+    if path.suffix.lower() not in CLOUD_FORMATS:
+        raise KneeInputError(f"{path}: not a point-cloud format this reads (give {', '.join(CLOUD_FORMATS)}; a "
+                             "mesh's vertices: save them as .ply)")
     if path.suffix.lower() == ".ply":
         with open(path, "rb") as f:
             if f.read(3) != b"ply":  # open3d's PLY reader would print its own complaint first
@@ -90,7 +104,7 @@ def load_point_cloud(path) -> np.ndarray:
         pc = o3d.io.read_point_cloud(str(path))
     pts = np.asarray(pc.points, dtype=float)
     if len(pts) == 0:
-        raise KneeInputError(f"{path}: no points read (unsupported or empty file)")
+        raise KneeInputError(f"{path}: no points read (an empty cloud, or not three numbers x y z per line)")
     valid = np.all(np.isfinite(pts), axis=1) & np.any(pts != 0.0, axis=1)
     if not valid.any():
         raise KneeInputError(f"{path}: none of its {len(pts)} points is valid (each is NaN, infinite or at the "
