@@ -56,6 +56,28 @@ def test_knee_fem_bad_input(args, msg):
     assert_clean_error(run("fem", "volunteer", *args), msg)
 
 
+def test_knee_fem_subject_options_on_a_missing_folder_name_the_folder():
+    """A subject's options with a folder that does not exist: the error names the missing folder (it had
+    said the options go with a subject folder, "not a parameter set", of a name that is neither); with a
+    bundled parameter set it says the options do not go with it."""
+    assert_clean_error(run("fem", "no-such-subject", "--prior", "p.toml", "--out", "o"),
+                       "no-such-subject: no such subject folder")
+    assert_clean_error(run("fem", "volunteer", "--prior", "p.toml"), "--prior goes with a subject folder, not a")
+
+
+
+@pytest.mark.parametrize("flag", [["--max-steps", "50"], ["--flexion", "60"], ["--camera", "frontal"], ["--no-noise"],
+                                  ["--seed", "3"], ["--rrd", "x.rrd"], ["--bone-stall", "1"], ["--truth", "volunteer"]])
+def test_knee_fem_refuses_the_phantoms_options_on_a_subject(flag, tmp_path):
+    """The phantom's options (its standard case's truth, camera, noise, step limit, recording) do not apply
+    to a subject's run: named in one line rather than silently ignored, nothing written."""
+    subject = tmp_path / "subject"
+    subject.mkdir()
+    p = run("fem", subject, "--prior", "p.toml", "--cloud", "c.ply", "--out", tmp_path / "out", *flag)
+    assert_clean_error(p, f"{flag[0]} goes with a parameter set's phantom, not a subject folder")
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["subject"]
+
+
 def test_knee_fem_tiny_point_cloud(tmp_path):
     f = tmp_path / "few.xyz"
     np.savetxt(f, np.random.default_rng(0).normal(size=(40, 3)) * 30.0)

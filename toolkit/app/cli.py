@@ -171,18 +171,18 @@ def build_parser() -> argparse.ArgumentParser:
     fe.add_argument("--initial-pose", help="subject: text file with a rough 4x4 pose of the CT frame in the camera's "
                                            "frame (within about 30 deg and 50 mm); default: a global registration")
     fe.add_argument("--out", help="subject: output folder (result.json, femur.stl, tibia.stl, fem.rrd, overlay.png)")
-    fe.add_argument("--flexion", type=float, default=90.0, help="flexion of the standard case's truth, deg (90)")
-    fe.add_argument("--truth", help="parameter set generating the truth (default: MODEL)")
-    fe.add_argument("--camera", default="oblique", help="oblique, frontal, lateral or AZ,EL,DIST (oblique)")
+    fe.add_argument("--flexion", type=float, help="phantom: flexion of the standard case's truth, deg (90)")
+    fe.add_argument("--truth", help="phantom: parameter set generating the truth (default: MODEL)")
+    fe.add_argument("--camera", help="phantom: oblique, frontal, lateral or AZ,EL,DIST (oblique)")
     fe.add_argument("--no-noise", action="store_true", help="no depth noise")
-    fe.add_argument("--seed", type=seed, default=0, help="seed of the depth noise (0)")
+    fe.add_argument("--seed", type=seed, help="seed of the depth noise (0)")
     fe.add_argument("--cloud", help="a measured point cloud (.ply/.pcd/.xyz/.pts, mm) instead of the virtual camera")
     fe.add_argument("--depth", help="a measured depth image (16-bit PNG or .npy) instead of the virtual camera")
     fe.add_argument("--intrinsics", help="fx,fy,cx,cy of the depth image (pixels)")
     fe.add_argument("--depth-scale", type=float, default=1.0, help="depth units to mm (1)")
     fe.add_argument("--pose", help="phantom: text file with the 4x4 camera-to-model transform (default identity)")
-    fe.add_argument("--max-steps", type=int, default=400, help="step limit (400)")
-    fe.add_argument("--bone-stall", type=float, default=0.5, metavar="DEG",
+    fe.add_argument("--max-steps", type=int, help="phantom: step limit (400)")
+    fe.add_argument("--bone-stall", type=float, metavar="DEG",
                     help="end the bone forces when the largest flexion reached grows less than DEG over 10 steps "
                          "(0.5; 0: only the paper's femur-tibia angle below 100 deg or a third of --max-steps)")
     fe.add_argument("--rrd", help="phantom: Rerun recording to write")

@@ -21,6 +21,7 @@ from knee.models.fem.depth import DepthNoise, camera_from_spec
 from knee.models.fem.methods import bone_phase_note
 from knee.models.fem.scene import FemSettings, build_association_model
 from knee.models.mechanism import Mechanism
+from knee.models.mechanism.params import bundled_models
 
 
 def measured_points(args):
@@ -49,11 +50,27 @@ def measured_points(args):
     return None
 
 
+#: The options of a parameter set's phantom (its standard case), with their defaults; a subject's run
+#: refuses them rather than ignore them.
+PHANTOM_OPTIONS = {"flexion": 90.0, "truth": None, "camera": "oblique", "no_noise": False, "seed": 0, "pose": None,
+                   "max_steps": 400, "bone_stall": 0.5, "rrd": None}
+
+
 def run(args) -> int:
     if Path(args.model).is_dir():  # a subject folder: its own knee, with a fitted prior
+        for flag in PHANTOM_OPTIONS:
+            if getattr(args, flag, None) not in (None, False):
+                raise KneeInputError(f"--{flag.replace('_', '-')} goes with a parameter set's phantom, not a subject "
+                                     "folder")
         return fem_subject.run(args)
+    for flag, default in PHANTOM_OPTIONS.items():
+        if getattr(args, flag, None) is None:
+            setattr(args, flag, default)
     for flag in ("prior", "method", "initial_pose", "out"):
         if getattr(args, flag):
+            if not Path(args.model).exists() and args.model not in bundled_models():
+                raise KneeInputError(f"{args.model}: no such subject folder (--{flag.replace('_', '-')} goes with a "
+                                     "subject folder)")
             raise KneeInputError(f"--{flag.replace('_', '-')} goes with a subject folder, not a parameter set")
     rrd = Path(args.rrd) if args.rrd else None
     inputs = tuple(Path(v) for v in (args.model, args.truth, args.cloud, args.depth, args.pose)
