@@ -374,12 +374,20 @@ def test_compare_on_a_case_set_bad_input_one_line_nothing_written(small_case_set
     lines, err = _error_lines(capsys)
     assert len(lines) == 1 and "selects none" in lines[0] and "Traceback" not in err
     assert not out.exists()
-    assert main(["compare", str(small_case_set), "--prior", "x.toml", "--out", str(out)]) == 2
-    lines, _ = _error_lines(capsys)
-    assert len(lines) == 1 and "--prior does not go with a case set" in lines[0]
-    assert main(["compare", "volunteer", "--only", "x", "--out", str(out)]) == 2
-    lines, _ = _error_lines(capsys)
-    assert len(lines) == 1 and "--only goes with a case set" in lines[0]
+    # each form's options elsewhere are refused, naming where they go, not ignored (a case set carries its
+    # truths, priors, cameras and noise; a subject its motion)
+    for model, argv, says in ((small_case_set, ["--prior", "x.toml"], "--prior goes with a subject folder, not a case set"),
+                              (small_case_set, ["--seed", "2"], "--seed goes with a subject folder or a parameter set, "
+                                                                "not a case set"),
+                              (small_case_set, ["--no-noise"], "--no-noise goes with a subject folder or a parameter"),
+                              ("volunteer", ["--only", "x"], "--only goes with a case set (a folder with case-set.toml), "
+                                                             "not a parameter set"),
+                              ("volunteer", ["--frames", "3"], "--frames goes with a subject folder, not a parameter set"),
+                              (tmp_path, ["--flexion", "30"], "--flexion goes with a parameter set, not a subject folder"),
+                              (tmp_path, ["--perturb", "1"], "--perturb goes with a parameter set, not a subject folder")):
+        assert main(["compare", str(model), *argv, "--out", str(out)]) == 2
+        lines, _ = _error_lines(capsys)
+        assert len(lines) == 1 and says in lines[0], lines
     bad = tmp_path / "bad"
     bad.mkdir()
     (bad / "case-set.toml").write_text('format = "knee-case-set"\n[[anatomy]]\nname = "a"\n')

@@ -148,16 +148,17 @@ def build_parser() -> argparse.ArgumentParser:
     co.add_argument("--truth-motion", help="subject: a measured motion (the subject folder's motion.csv format) whose "
                                            "rows pose the truth")
     co.add_argument("--only", help="case set: run only the cases whose id contains one of these (comma list)")
-    co.add_argument("--frames", type=int, default=4, help="subject: how many rows of the motion, spread over it (4)")
-    co.add_argument("--truth", help="parameter set generating the truth (default: MODEL, with the prior = MODEL "
-                                    "perturbed by --perturb)")
-    co.add_argument("--flexion", default="30:120:15", help="true flexion angles, FROM:TO:STEP or a list (30:120:15)")
-    co.add_argument("--cameras", default="oblique", help="oblique, frontal, lateral separated by commas, or "
-                                                         "entries AZ,EL,DIST separated by ';' (oblique)")
+    co.add_argument("--frames", type=int, help="subject: how many rows of the motion, spread over it (4)")
+    co.add_argument("--truth", help="parameter set: the parameter set generating the truth (default: MODEL, with "
+                                    "the prior = MODEL perturbed by --perturb)")
+    co.add_argument("--flexion", help="parameter set: true flexion angles, FROM:TO:STEP or a list (30:120:15)")
+    co.add_argument("--cameras", help="subject, parameter set: oblique, frontal, lateral separated by commas, or "
+                                      "entries AZ,EL,DIST separated by ';' (oblique)")
     co.add_argument("--methods", default="paper,init,links,kinematics", help="which methods (all four)")
-    co.add_argument("--perturb", type=float, default=2.0, help="largest endpoint move of the default prior, mm (2)")
-    co.add_argument("--seed", type=seed, default=3, help="seed of the perturbation and the depth noise (3)")
-    co.add_argument("--no-noise", action="store_true", help="no depth noise")
+    co.add_argument("--perturb", type=float, help="parameter set: largest endpoint move of the default prior, mm (2)")
+    co.add_argument("--seed", type=seed,
+                    help="subject, parameter set: seed of the perturbation and the depth noise (3)")
+    co.add_argument("--no-noise", action="store_true", help="subject, parameter set: no depth noise")
     co.add_argument("--out", default="knee-compare", help="output folder (knee-compare)")
     co.add_argument("--force", action="store_true", help="write into a non-empty output folder")
     co.add_argument("--quiet", action="store_true", help="no progress bar")

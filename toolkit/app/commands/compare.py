@@ -47,16 +47,36 @@ def camera_list(text: str) -> list[str]:
     return parts
 
 
+#: The options each form of ``knee compare`` takes beyond --methods, --out, --force and --quiet (a case set
+#: carries its truths, priors, cameras and noise), and their defaults where the form takes them.
+FORM_OPTIONS = {"case set": ("only",),
+                "subject folder": ("prior", "truth_motion", "frames", "cameras", "seed", "no_noise"),
+                "parameter set": ("truth", "flexion", "cameras", "perturb", "seed", "no_noise")}
+OPTION_DEFAULTS = {"frames": 4, "flexion": "30:120:15", "cameras": "oblique", "perturb": 2.0, "seed": 3}
+_WHERE = {"case set": "a case set (a folder with case-set.toml)", "subject folder": "a subject folder",
+          "parameter set": "a parameter set"}
+
+
+def check_form_options(args, form: str) -> None:
+    """An option another form takes, given to this one, is refused in one line naming where it goes (not
+    ignored); those this form takes and were not given get their defaults."""
+    for flag in sorted({f for opts in FORM_OPTIONS.values() for f in opts}):
+        if flag in FORM_OPTIONS[form]:
+            if getattr(args, flag, None) is None and flag in OPTION_DEFAULTS:
+                setattr(args, flag, OPTION_DEFAULTS[flag])
+        elif getattr(args, flag, None) not in (None, False):
+            where = " or ".join(_WHERE[f] for f in FORM_OPTIONS if flag in FORM_OPTIONS[f])
+            raise KneeInputError(f"--{flag.replace('_', '-')} goes with {where}, not {_WHERE[form].split(' (')[0]}")
+
+
 def run(args) -> int:
     if Path(args.model).is_dir() and is_case_set(args.model):
+        check_form_options(args, "case set")
         return run_cases(args)
-    if args.only:
-        raise KneeInputError("--only goes with a case set (a folder with case-set.toml)")
     if Path(args.model).is_dir():
+        check_form_options(args, "subject folder")
         return run_subject(args)
-    for flag in ("prior", "truth_motion"):
-        if getattr(args, flag):
-            raise KneeInputError(f"--{flag.replace('_', '-')} goes with a subject folder, not a parameter set")
+    check_form_options(args, "parameter set")
     flexions = flexion_list(args.flexion)
     cams = {c: camera_from_spec(c) for c in camera_list(args.cameras)}
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
@@ -155,9 +175,6 @@ def run_subject(args) -> int:
 def run_cases(args) -> int:
     """``knee compare CASE_SET``: every method on every case of a case set (``scripts/build_case_set.py``;
     :mod:`knee.app.experiments.case_set`), with the table, the targets and the figure."""
-    for flag in ("prior", "truth_motion", "truth"):
-        if getattr(args, flag):
-            raise KneeInputError(f"--{flag.replace('_', '-')} does not go with a case set (its truth and priors are in it)")
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     if not methods or any(m not in METHODS for m in methods):
         raise KneeInputError(f"--methods must be a comma list of {', '.join(METHODS)}, got {args.methods!r}")
