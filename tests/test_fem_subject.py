@@ -152,3 +152,58 @@ def test_fitting_a_subject_without_mri_or_motion_names_what_is_missing(case, tmp
     (d / "motion.csv").unlink()
     assert_clean_error(run("fit", d, "--out", tmp_path / "fit"), "no mri/", "and no motion.csv", "the fit needs them")
     assert not (tmp_path / "fit").exists()
+
+
+def test_a_synthetic_subjects_depth_frame_through_knee_fem(tmp_path):
+    """``knee synth-subject --depth-frame 60`` writes what a lab's camera gives (a 16-bit depth PNG in mm,
+    its intrinsics, a rough CT pose in the camera) and the truth; ``knee fem`` on them, as the README walks a
+    new user through it, finds the bones in the camera's frame. Checked independently of the rendering: the
+    depth image back-projected with the written intrinsics and carried into the CT by the written true
+    poses lies on the subject's own CT skin over the thigh (femur-fixed) and over the shank (tibia-fixed),
+    which catches a wrong pose, frame or intrinsics convention; the rough pose is as far off as it says."""
+    from knee.fitting.optimize import perturb_endpoints
+    from knee.fitting.subject import load_subject
+    from knee.fitting.pipeline import anatomical_frames
+    from knee.foundations.pointclouds import load_depth_image
+    from knee.foundations.surfaces import SurfaceQuery
+    from knee.models.mechanism.params import load_model, save_toml
+
+    s = tmp_path / "subject"
+    for bad in ("170", "nan"):
+        assert_clean_error(run("synth-subject", s, "--depth-frame", bad), "--depth-frame must lie within")
+        assert not s.exists()
+    p = run("synth-subject", s, "--frames", "30", "--depth-frame", "60")
+    assert p.returncode == 0, p.stderr
+    cam = s / "camera"
+    truth = json.loads((cam / "truth.json").read_text())
+    fx, fy, cx, cy = (float(v) for v in (cam / "intrinsics.txt").read_text().split(","))
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    pts_cam = load_depth_image(cam / "depth.png", K)
+    subject = load_subject(s)
+    skin = SurfaceQuery.of(subject.skin)
+    frames = anatomical_frames(subject)
+    for bone, keep in (("femur", lambda y: y > 60.0), ("tibia", lambda y: y < -60.0)):
+        T = np.linalg.inv(np.array(truth[f"T_camera_{bone}_ct"]))
+        pts_ct = pts_cam @ T[:3, :3].T + T[:3, 3]
+        # the bone's own skin: more than 60 mm above the femur's origin (thigh) or below the tibia's (shank)
+        F = np.linalg.inv(frames[bone])
+        y = (pts_ct @ F[:3, :3].T + F[:3, 3])[:, 1]
+        near = np.abs(skin.signed_distance(pts_ct[keep(y)]))
+        assert near.size > 1000 and np.median(near) < 1.5, (bone, near.size, np.median(near))
+    rough = np.loadtxt(cam / "ct-in-camera-rough.txt")
+    off = np.linalg.inv(np.array(truth["T_camera_femur_ct"])) @ rough
+    assert np.degrees(Rotation.from_matrix(off[:3, :3]).magnitude()) == pytest.approx(15.0, abs=1e-6)
+    # the README's walk-through (with the truth's endpoints moved 1-2 mm as the prior, for a shorter test)
+    save_toml(perturb_endpoints(load_model(s / "truth.toml"), 1.0, 2.0, seed=3), tmp_path / "prior.toml")
+    out = tmp_path / "fem"
+    p = run("fem", s, "--prior", tmp_path / "prior.toml", "--depth", cam / "depth.png", "--intrinsics",
+            (cam / "intrinsics.txt").read_text().strip(), "--initial-pose", cam / "ct-in-camera-rough.txt",
+            "--out", out, "--quiet")
+    assert p.returncode == 0, p.stderr
+    r = json.loads((out / "result.json").read_text())
+    assert abs(r["flexion_deg"] - truth["flexion_deg"]) < 2.0
+    for bone in ("femur", "tibia"):
+        v = subject.ct[bone].vertices
+        A, B = np.array(truth[f"T_camera_{bone}_ct"]), np.array(r[f"T_camera_{bone}_ct"])
+        err = np.linalg.norm((v @ A[:3, :3].T + A[:3, 3]) - (v @ B[:3, :3].T + B[:3, 3]), axis=1)
+        assert np.median(err) < 6.0, (bone, np.median(err))

@@ -4,7 +4,7 @@
     knee models
     knee sweep MODEL [--from 0] [--to 120] [--step 1] [--out motion.csv] [--rrd sweep.rrd] [--force]
     knee demo [--out DIR] [--flexion 60] [--kinematics-only]
-    knee synth-subject OUT_DIR [--model volunteer] [--seed N] [--frames 60]
+    knee synth-subject OUT_DIR [--model volunteer] [--seed N] [--frames 60] [--depth-frame DEG]
     knee fit SUBJECT_DIR --out OUT_DIR [--seed N] [--quick] [--no-global] [--no-recording] [--force]
              [--bounds KEY=VALUE,...] [--noise KEY=VALUE,...] [--assemble-over 0:120|none] [--average-halves]
              [--also-trial MOTION.csv] [--check-trial MOTION.csv]
@@ -94,6 +94,9 @@ def build_parser() -> argparse.ArgumentParser:
     ss.add_argument("--model", default="volunteer", help="parameter set with a patella (volunteer)")
     ss.add_argument("--seed", type=seed, default=0, help="random seed (0)")
     ss.add_argument("--frames", type=int, default=60, help="frames of the measured motion, 0-120 deg (60)")
+    ss.add_argument("--depth-frame", type=float, metavar="DEG",
+                    help="also a depth image of the knee at DEG flexion, as a camera would give it (OUT_DIR/camera/: "
+                         "depth.png, intrinsics.txt, a rough CT pose in the camera, the truth): input for knee fem")
     fp = sub.add_parser("fit", help="fit a subject-specific mechanism to a subject folder")
     fp.add_argument("subject_dir", help="the subject folder (README, 'Subject folders'); never written to")
     fp.add_argument("--out", required=True, help="output folder (parameter files, report, figure, recording)")

@@ -49,17 +49,25 @@ def truth_phantom(mech: Mechanism, settings: FemSettings | None = None) -> Phant
     return build_phantom(mech.params, shaft_length=s.shaft_length, cartilage=s.cartilage)
 
 
-def case_points(truth: Mechanism, flexion_deg: float, camera: Camera, noise: DepthNoise | None, seed: int = 0,
-                settings: FemSettings | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The standard case's input: the depth points (P, 3) (mm, world frame) a virtual camera sees of the
-    skin of ``truth``'s phantom posed at ``flexion_deg`` (with noise), and the truth's TF joint
-    coordinates (6,)."""
+def case_depth(truth: Mechanism, flexion_deg: float, camera: Camera, noise: DepthNoise | None, seed: int = 0,
+               settings: FemSettings | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The depth image (H, W) (mm, 0 where nothing is seen) a virtual camera takes of the skin of
+    ``truth``'s phantom posed at ``flexion_deg`` (with noise), and the truth's TF joint coordinates (6,)."""
     ph = truth_phantom(truth, settings)
     tf, pf, _ = truth.solve(np.radians(flexion_deg))
     skin = ph.skin(joint_to_pose(tf), joint_to_pose(pf) if truth.has_pf else None)
     depth = render_depth(skin.vertices, skin.faces, camera)
     if noise is not None:
         depth = noise.apply(depth, np.random.default_rng(seed))
+    return depth, tf
+
+
+def case_points(truth: Mechanism, flexion_deg: float, camera: Camera, noise: DepthNoise | None, seed: int = 0,
+                settings: FemSettings | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The standard case's input: the depth points (P, 3) (mm, world frame) a virtual camera sees of the
+    skin of ``truth``'s phantom posed at ``flexion_deg`` (with noise), and the truth's TF joint
+    coordinates (6,)."""
+    depth, tf = case_depth(truth, flexion_deg, camera, noise, seed, settings)
     return backproject(depth, camera.K, camera.T_world_cam), tf
 
 
