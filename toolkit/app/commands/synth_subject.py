@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from knee.app.console import out_dir, say
@@ -74,8 +75,6 @@ def write_depth_frame(folder: Path, flexion_deg: float, seed: int) -> str:
     off[:3, :3] = Rotation.from_rotvec(math.radians(ROUGH_POSE_OFF[0]) * axis / np.linalg.norm(axis)).as_matrix()
     off[:3, 3] = ROUGH_POSE_OFF[1] * shift / np.linalg.norm(shift)
     (folder / "camera").mkdir()
-    import open3d as o3d
-
     o3d.io.write_image(str(folder / "camera" / "depth.png"),
                        o3d.geometry.Image(np.clip(np.round(depth), 0, 65535).astype(np.uint16)))
     K = cam.K
