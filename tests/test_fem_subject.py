@@ -207,3 +207,29 @@ def test_a_synthetic_subjects_depth_frame_through_knee_fem(tmp_path):
         A, B = np.array(truth[f"T_camera_{bone}_ct"]), np.array(r[f"T_camera_{bone}_ct"])
         err = np.linalg.norm((v @ A[:3, :3].T + A[:3, 3]) - (v @ B[:3, :3].T + B[:3, 3]), axis=1)
         assert np.median(err) < 6.0, (bone, np.median(err))
+
+
+def test_the_overlays_image_of_a_cloud_back_projects_onto_the_cloud():
+    """Without a depth image the overlay splats the points into a virtual camera's image at the camera's
+    frame: back-projected with that image's intrinsics, every pixel a point filled lies within a pixel's
+    footprint of a point (the pixel-centre convention of the back-projection), and the image holds them all."""
+    from scipy.spatial import cKDTree
+
+    from knee.app.commands.fem_subject import _points_image
+    from knee.foundations.pointclouds import backproject
+
+    rng = np.random.default_rng(0)
+    # a bumpy surface about 350 mm in front of the camera, 200 x 150 mm, 40 000 points
+    xy = rng.uniform([-100.0, -75.0], [100.0, 75.0], size=(40000, 2))
+    z = 350.0 + 20.0 * np.sin(xy[:, 0] / 30.0) * np.cos(xy[:, 1] / 25.0)
+    pts = np.column_stack([xy, z])
+    depth, K = _points_image(pts)
+    back = backproject(depth, K)
+    pixel_mm = 400.0 / K[0, 0]  # a pixel's footprint at the farthest depth
+    d, _ = cKDTree(pts).query(back)
+    assert np.all(d < 3.0 * pixel_mm + 1.0)
+    u = (pts[:, 0] / pts[:, 2]) * K[0, 0] + K[0, 2]
+    v = (pts[:, 1] / pts[:, 2]) * K[1, 1] + K[1, 2]
+    h, w = depth.shape
+    assert u.min() > 0 and v.min() > 0 and u.max() < w and v.max() < h
+    assert (depth > 0).mean() > 0.5

@@ -14,7 +14,7 @@ Outputs in OUT (written only when the run succeeds; nothing that looks like a re
   and the warnings;
 - ``femur.stl``, ``tibia.stl``: the CT bones posed in the camera's frame;
 - ``fem.rrd``: the points, the reconstructed skin and bones (camera frame);
-- ``overlay.png``: the bones' outlines over the depth image (or over the points seen from the camera).
+- ``overlay.png``: the bones' silhouettes over the depth image (or over the points seen from the camera).
 """
 
 from __future__ import annotations
@@ -31,6 +31,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import rerun as rr  # noqa: E402
 import rerun.blueprint as rrb  # noqa: E402
+from matplotlib.colors import ListedColormap  # noqa: E402
+from matplotlib.patches import Patch  # noqa: E402
+from scipy.ndimage import minimum_filter  # noqa: E402
 
 from knee.app.console import ProgressBar, numbers, out_dir, say  # noqa: E402
 from knee.fitting.pipeline import anatomical_frames  # noqa: E402
@@ -42,6 +45,7 @@ from knee.foundations.errors import KneeInputError  # noqa: E402
 from knee.foundations.files import staged_folder  # noqa: E402
 from knee.foundations.imaging import write_surface  # noqa: E402
 from knee.foundations.pointclouds import backproject, load_point_cloud, read_depth_image  # noqa: E402
+from knee.models.fem.depth import Camera, render_depth  # noqa: E402
 from knee.models.fem.methods import reconstruct_in_camera  # noqa: E402
 from knee.models.fem.scene import build_knee_model  # noqa: E402
 from knee.models.mechanism import Mechanism  # noqa: E402
@@ -184,25 +188,54 @@ def _write_into(tmp: Path, subject, model, recon, poses, points_cam, T_cam_world
 
 
 def _overlay(path, meshes, points_cam, depth, K) -> None:
-    """The bones' vertices projected into the image (or the points and bones seen along the optical
-    axis, without a depth image)."""
-    fig, ax = plt.subplots(figsize=(8, 6))
-    if depth is not None:
-        ax.imshow(np.where(depth > 0, depth, np.nan), cmap="gray")
-        for b, m in meshes.items():
-            v = np.asarray(m.vertices)
-            v = v[v[:, 2] > 1.0]
-            uv = (K @ v.T).T
-            uv = uv[:, :2] / uv[:, 2:3]
-            ax.scatter(uv[:, 0], uv[:, 1], s=0.3, alpha=0.5, label=b)
-    else:
-        p = points_cam[:: max(1, len(points_cam) // 20000)]
-        ax.scatter(p[:, 0], -p[:, 1], s=0.2, c="0.6")
-        for b, m in meshes.items():
-            v = np.asarray(m.vertices)
-            ax.scatter(v[:, 0], -v[:, 1], s=0.3, alpha=0.5, label=b)
-        ax.set_aspect("equal")
-    ax.legend(markerscale=20)
-    ax.set_title("the reconstructed bones over the depth data (camera frame)")
+    """The bones' silhouettes (filled, outlined) as the camera sees them, over the depth image; without a
+    depth image, over the points splatted into an image of a virtual camera at the same place (the
+    camera's frame, its optical axis the z axis)."""
+    if depth is None:
+        depth, K = _points_image(points_cam)
+    h, w = depth.shape
+    cam = Camera(K=np.asarray(K, float), width=w, height=h, T_world_cam=np.eye(4))
+    fig, ax = plt.subplots(figsize=(9.0, max(3.0, 9.0 * h / w)))
+    ax.imshow(np.where(depth > 0, depth, np.nan), cmap="gray", interpolation="nearest")
+    handles = []
+    for (b, m), colour in zip(meshes.items(), ("tab:blue", "tab:orange")):
+        # each bone rendered alone: its whole outline, as an AR overlay draws it, whatever covers it
+        mask = render_depth(m.vertices, m.faces, cam) > 0
+        if mask.any():
+            ax.imshow(np.ma.masked_where(~mask, np.ones_like(mask, float)), cmap=ListedColormap([colour]),
+                      alpha=0.3, interpolation="nearest")
+            ax.contour(mask.astype(float), levels=[0.5], colors=[colour], linewidths=1.2)
+        handles.append(Patch(facecolor=colour, edgecolor=colour, alpha=0.5,
+                             label=b if mask.any() else f"{b} (outside the image)"))
+    ax.set_xlim(-0.5, w - 0.5)
+    ax.set_ylim(h - 0.5, -0.5)
+    ax.legend(handles=handles, loc="upper right")
+    ax.set_title("the reconstructed bones over the depth data (camera's view)")
+    ax.set_xlabel("u (pixels)")
+    ax.set_ylabel("v (pixels)")
+    fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _points_image(points_cam, size: int = 900, margin: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    """A depth image (mm, 0 where empty) of points (P, 3) in a camera's frame, and the intrinsics (3, 3) of a
+    virtual camera at that frame whose image holds them all (``size`` pixels across their wider extent)."""
+    p = np.asarray(points_cam, float)
+    p = p[p[:, 2] > 1.0]
+    n = p[:, :2] / p[:, 2:3]
+    lo, hi = n.min(axis=0), n.max(axis=0)
+    f = size / max(float((hi - lo).max()), 1e-6)
+    w, h = (np.ceil((hi - lo) * f).astype(int) + 2 * margin)
+    cx, cy = margin - lo * f
+    K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+    # the pixel whose centre (u + 0.5) is nearest the projection, as the back-projection reads it
+    u = np.clip(np.floor(n[:, 0] * f + cx).astype(int), 0, w - 1)
+    v = np.clip(np.floor(n[:, 1] * f + cy).astype(int), 0, h - 1)
+    depth = np.full((h, w), np.inf)
+    np.minimum.at(depth, (v, u), p[:, 2])
+    # the gaps between the points of a sparser cloud than the image's pixels, filled from the nearest
+    # (a 5-pixel minimum), so that the surface reads as one
+    depth = np.where(np.isfinite(depth), depth, minimum_filter(depth, size=5))
+    depth[~np.isfinite(depth)] = 0.0
+    return depth, K
