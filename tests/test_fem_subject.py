@@ -10,6 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from tests.test_cli import assert_clean_error, run
+from tests.test_fem_cli import _rrd_entities
 
 
 @pytest.fixture(scope="module")
@@ -202,6 +203,11 @@ def test_a_synthetic_subjects_depth_frame_through_knee_fem(tmp_path):
     assert p.returncode == 0, p.stderr
     r = json.loads((out / "result.json").read_text())
     assert abs(r["flexion_deg"] - truth["flexion_deg"]) < 2.0
+    # the recording holds the camera's image with the bones' silhouettes, beside the 3-D camera frame
+    text = _rrd_entities(out / "fem.rrd")
+    for entity in ("/camera/points", "/camera/femur", "/camera/image/depth", "/camera/image/femur",
+                   "/camera/image/tibia"):
+        assert entity in text, entity
     for bone in ("femur", "tibia"):
         v = subject.ct[bone].vertices
         A, B = np.array(truth[f"T_camera_{bone}_ct"]), np.array(r[f"T_camera_{bone}_ct"])

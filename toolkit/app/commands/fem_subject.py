@@ -52,6 +52,10 @@ from knee.models.mechanism import Mechanism  # noqa: E402
 from knee.models.mechanism.params import load_model  # noqa: E402
 
 
+#: The bones' silhouettes over the camera's image (the overlay and the recording's 2-D view), RGB.
+SILHOUETTE_COLOURS = {"femur": (31, 119, 180), "tibia": (255, 127, 14)}
+
+
 def _read_pose(path) -> np.ndarray:
     try:
         T = np.loadtxt(path, dtype=float).reshape(4, 4)
@@ -171,8 +175,17 @@ def _write_into(tmp: Path, subject, model, recon, poses, points_cam, T_cam_world
     for b, m in meshes.items():
         write_surface(tmp / f"{b}.stl", m, "LPS")
     (tmp / "result.json").write_text(json.dumps(result, indent=1), encoding="utf-8")
+    # the camera's image: the depth image given (or the points splatted into a virtual camera's) and each
+    # bone's silhouette rendered with its intrinsics, for the recording's 2-D view and the overlay
+    if depth is None:
+        depth, K = _points_image(points_cam)
+    h, w = depth.shape
+    cam = Camera(K=np.asarray(K, float), width=w, height=h, T_world_cam=np.eye(4))
+    masks = {b: render_depth(m.vertices, m.faces, cam) > 0 for b, m in meshes.items()}
     rec = R.new_recording()
-    R.save(rec, tmp / "fem.rrd", rrb.Blueprint(rrb.Spatial3DView(origin="camera", name="Camera frame"),
+    R.save(rec, tmp / "fem.rrd", rrb.Blueprint(rrb.Horizontal(rrb.Spatial3DView(origin="camera", name="Camera frame"),
+                                                              rrb.Spatial2DView(origin="camera/image",
+                                                                                name="Camera image")),
                                                 collapse_panels=True))
     rec.log("camera/points", rr.Points3D(points_cam[:: max(1, len(points_cam) // 60000)].astype(np.float32),
                                          colors=[(90, 170, 255)], radii=[0.6]), static=True)
@@ -183,24 +196,26 @@ def _write_into(tmp: Path, subject, model, recon, poses, points_cam, T_cam_world
         rec.log("camera/skin", rr.Mesh3D(vertex_positions=skin.astype(np.float32),
                                          triangle_indices=np.asarray(model.skin_faces, np.uint32),
                                          albedo_factor=R.BONE_COLOURS["skin"]), static=True)
+    rec.log("camera/image", rr.Pinhole(image_from_camera=cam.K, resolution=[w, h]), static=True)
+    rec.log("camera/image/depth", rr.DepthImage(np.round(depth).astype(np.uint16), meter=1.0), static=True)
+    rec.log("camera/image", rr.AnnotationContext([(k, b, SILHOUETTE_COLOURS[b]) for k, b in enumerate(masks, 1)]),
+            static=True)
+    for k, (b, mask) in enumerate(masks.items(), 1):  # 0 is transparent: each bone's silhouette over the image
+        rec.log(f"camera/image/{b}", rr.SegmentationImage(np.where(mask, k, 0).astype(np.uint8), opacity=0.4),
+                static=True)
     R.close(rec)
-    _overlay(tmp / "overlay.png", meshes, points_cam, depth, K)
+    _overlay(tmp / "overlay.png", masks, depth)
 
 
-def _overlay(path, meshes, points_cam, depth, K) -> None:
-    """The bones' silhouettes (filled, outlined) as the camera sees them, over the depth image; without a
-    depth image, over the points splatted into an image of a virtual camera at the same place (the
-    camera's frame, its optical axis the z axis)."""
-    if depth is None:
-        depth, K = _points_image(points_cam)
+def _overlay(path, masks, depth) -> None:
+    """Each bone's silhouette (``masks``: bone -> (H, W) bool, as the camera sees it whatever covers it)
+    filled and outlined over the depth image (H, W), as an AR view would draw it."""
     h, w = depth.shape
-    cam = Camera(K=np.asarray(K, float), width=w, height=h, T_world_cam=np.eye(4))
     fig, ax = plt.subplots(figsize=(9.0, max(3.0, 9.0 * h / w)))
     ax.imshow(np.where(depth > 0, depth, np.nan), cmap="gray", interpolation="nearest")
     handles = []
-    for (b, m), colour in zip(meshes.items(), ("tab:blue", "tab:orange")):
-        # each bone rendered alone: its whole outline, as an AR overlay draws it, whatever covers it
-        mask = render_depth(m.vertices, m.faces, cam) > 0
+    for b, mask in masks.items():
+        colour = np.array(SILHOUETTE_COLOURS[b]) / 255.0
         if mask.any():
             ax.imshow(np.ma.masked_where(~mask, np.ones_like(mask, float)), cmap=ListedColormap([colour]),
                       alpha=0.3, interpolation="nearest")
