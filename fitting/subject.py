@@ -195,7 +195,9 @@ def _indices(values, where: str) -> np.ndarray:
     return a.astype(int)
 
 
-def _mirror_mesh(m: trimesh.Trimesh) -> trimesh.Trimesh:
+def mirror_mesh(m: trimesh.Trimesh) -> trimesh.Trimesh:
+    """A copy of a surface mirrored in x (LPS: left-right), its winding restored: a left knee's scan read as
+    a right knee's, or a right knee's reading of it returned to the scan."""
     m = m.copy()
     m.vertices = m.vertices * np.array([-1.0, 1.0, 1.0])
     m.invert()  # a reflection flips the winding; restore outward normals
@@ -338,8 +340,8 @@ def load_subject(root) -> Subject:
             if "missing surface" not in str(e):
                 raise
     if side == "left":
-        ct = {k: _mirror_mesh(v) for k, v in ct.items()}
-        mri = {k: _mirror_mesh(v) for k, v in mri.items()}
+        ct = {k: mirror_mesh(v) for k, v in ct.items()}
+        mri = {k: mirror_mesh(v) for k, v in mri.items()}
     skin = ct.pop("skin", None)
     if skin is not None:
         skin = closed_surface(skin, f"{root / 'ct'} skin")

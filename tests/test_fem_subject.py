@@ -239,3 +239,35 @@ def test_the_overlays_image_of_a_cloud_back_projects_onto_the_cloud():
     h, w = depth.shape
     assert u.min() > 0 and v.min() > 0 and u.max() < w and v.max() < h
     assert (depth > 0).mean() > 0.5
+
+
+def test_a_left_knee_comes_out_in_its_own_ct_and_camera_frames(case, tmp_path):
+    """A left knee (the subject and its camera scene mirrored: LPS x and the camera's x negated) gives the
+    mirror of the right knee's answer: poses taking the left CT's own coordinates to the camera's frame
+    (proper rotations), the bones written where the left CT's bones are, the same flexion. Before, its
+    points were registered to the right-knee reading of its CT, and the poses taken to be of its CT."""
+    from knee.foundations.imaging import read_surface
+    from tests.test_fitting_pipeline import _mirror_folder
+
+    S = np.diag([-1.0, 1.0, 1.0, 1.0])
+    left = _mirror_folder(case["dir"], tmp_path / "left", "left")
+    pts = np.asarray(o3d.io.read_point_cloud(str(case["tmp"] / "cloud.ply")).points) * [-1.0, 1.0, 1.0]
+    o3d.io.write_point_cloud(str(tmp_path / "cloud.ply"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)))
+    np.savetxt(tmp_path / "pose.txt", S @ np.loadtxt(case["tmp"] / "pose.txt") @ S)
+    out = tmp_path / "out"
+    p = run("fem", left, "--prior", case["tmp"] / "prior.toml", "--cloud", tmp_path / "cloud.ply",
+            "--initial-pose", tmp_path / "pose.txt", "--out", out, "--quiet")
+    assert p.returncode == 0, p.stderr
+    r = json.loads((out / "result.json").read_text())
+    assert r["side"] == "left" and abs(r["flexion_deg"] - math.degrees(case["tf"][0])) < 2.0
+    for bone, key in (("femur", "T_cam_ct"), ("tibia", "T_cam_tibia_ct")):
+        T = np.array(r[f"T_camera_{bone}_ct"])
+        assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0, abs=1e-9)
+        err = np.linalg.inv(S @ case[key] @ S) @ T
+        assert np.degrees(Rotation.from_matrix(err[:3, :3]).magnitude()) < 3.0
+        # the written bone is the left CT's own bone, posed: on the truth's placement of it within a few mm
+        scan = read_surface(left / "ct" / f"{bone}.stl").vertices
+        truth = scan @ (S @ case[key] @ S)[:3, :3].T + (S @ case[key] @ S)[:3, 3]
+        written = read_surface(out / f"{bone}.stl")
+        assert np.median(np.linalg.norm(written.vertices - truth, axis=1)) < 6.0
+        assert written.volume > 0  # outward normals: the mirrored copy's winding restored

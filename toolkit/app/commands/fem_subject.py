@@ -37,7 +37,7 @@ from scipy.ndimage import minimum_filter  # noqa: E402
 
 from knee.app.console import ProgressBar, numbers, out_dir, say  # noqa: E402
 from knee.fitting.pipeline import anatomical_frames  # noqa: E402
-from knee.fitting.subject import load_subject  # noqa: E402
+from knee.fitting.subject import load_subject, mirror_mesh  # noqa: E402
 from knee.fitting.subject_anatomy import subject_anatomy  # noqa: E402
 from knee.foundations import recording as R  # noqa: E402
 from knee.foundations.conventions import JOINT_COORDINATES, invert_poses, pose_to_joint, transform_points  # noqa: E402
@@ -106,6 +106,13 @@ def run(args) -> int:
     method = args.method or "links"
     points_cam, depth, K = _points(args)
     subject = load_subject(subject_dir)
+    # a left knee is read mirrored into a right one (README, "Subject folders"): the camera's points and the
+    # initial pose are mirrored with it (x negated in the camera's frame and in the CT's), and the bones'
+    # poses mirrored back, so that the outputs take the subject's own CT coordinates to the camera's frame
+    S = np.diag([-1.0, 1.0, 1.0, 1.0]) if subject.side == "left" else np.eye(4)
+    points_run = points_cam @ S[:3, :3]
+    if init_pose is not None:
+        init_pose = S @ init_pose @ S
     try:
         prior = Mechanism(load_model(args.prior))
     except KneeInputError as e:
@@ -125,7 +132,7 @@ def run(args) -> int:
     bar = None if args.quiet else ProgressBar()
     if bar:
         bar(0.1, f"registration and {method}")
-    recon, rough = reconstruct_in_camera(model, prior, points_cam, T_init, method)
+    recon, rough = reconstruct_in_camera(model, prior, points_run, T_init, method)
     seconds = time.perf_counter() - t1
     lo, hi = (math.degrees(v) for v in prior.assembly_range)
     if recon.estimate is not None and recon.estimate.at_range_end:
@@ -135,12 +142,15 @@ def run(args) -> int:
         bar(1.0, f"{recon.steps} steps")
     # bones in the camera's frame: rest (model frame) -> reconstruction (rough model frame) -> camera
     T_cam_world = invert_poses(rough.T_model_world)
-    poses = {b: T_cam_world @ recon.bone_pose(b, getattr(model, b).el.X) @ invert_poses(T_ct_model)
-             for b in ("femur", "tibia")}
-    tf_pose = invert_poses(T_ct_model) @ invert_poses(poses["femur"]) @ poses["tibia"] @ frames["tibia"]
+    poses_run = {b: T_cam_world @ recon.bone_pose(b, getattr(model, b).el.X) @ invert_poses(T_ct_model)
+                 for b in ("femur", "tibia")}
+    # the joint coordinates in the anatomical frames (a left knee's as its mirrored right knee's, the
+    # convention of its coordinates); the poses in the subject's own CT and camera frames
+    tf_pose = invert_poses(T_ct_model) @ invert_poses(poses_run["femur"]) @ poses_run["tibia"] @ frames["tibia"]
     tf = pose_to_joint(tf_pose)
+    poses = {b: S @ T @ S for b, T in poses_run.items()}
     result = {
-        "subject": subject.name, "method": recon.method, "prior": str(args.prior),
+        "subject": subject.name, "side": subject.side, "method": recon.method, "prior": str(args.prior),
         "flexion_deg": math.degrees(tf[0]),
         "tf_joint_coordinates": {name: (math.degrees(v) if k < 3 else float(v))
                                  for k, (name, v) in enumerate(zip(JOINT_COORDINATES, tf))},
@@ -153,7 +163,15 @@ def run(args) -> int:
         "seconds": {"model": built, "registration_and_method": seconds},
         "warnings": list(recon.notes),
     }
-    _write_outputs(out, subject, model, recon, poses, points_cam, T_cam_world, result, depth, K)
+    # the CT bones as scanned (a left knee's mirrored back), posed in the camera's frame; the FEM's skin too
+    meshes = {b: (mirror_mesh(subject.ct[b]) if subject.side == "left" else subject.ct[b].copy()).apply_transform(T)
+              for b, T in poses.items()}
+    skin = None
+    if recon.grid_x is not None:  # the FEM's skin (the mechanism alone has none)
+        faces = np.asarray(model.skin_faces)
+        skin = (transform_points(S @ T_cam_world, recon.locate("femur", model.skin_vertices)),
+                faces[:, ::-1] if subject.side == "left" else faces)
+    _write_outputs(out, meshes, skin, points_cam, result, depth, K)
     print(f"{subject.name}: flexion {result['flexion_deg']:.1f} deg ({recon.method}), {recon.steps} steps in "
           f"{seconds:.1f} s; registration: {100 * rough.inliers:.0f} % of the points within 5 mm of the skin")
     for w in recon.notes:
@@ -163,15 +181,16 @@ def run(args) -> int:
     return 0
 
 
-def _write_outputs(out: Path, subject, model, recon, poses, points_cam, T_cam_world, result, depth, K) -> None:
+def _write_outputs(out: Path, meshes, skin, points_cam, result, depth, K) -> None:
     """Every output into a temporary folder beside OUT, then renamed into place: a run that fails leaves
     no half-written results."""
     with staged_folder(out) as tmp:
-        _write_into(tmp, subject, model, recon, poses, points_cam, T_cam_world, result, depth, K)
+        _write_into(tmp, meshes, skin, points_cam, result, depth, K)
 
 
-def _write_into(tmp: Path, subject, model, recon, poses, points_cam, T_cam_world, result, depth, K) -> None:
-    meshes = {b: subject.ct[b].copy().apply_transform(poses[b]) for b in ("femur", "tibia")}
+def _write_into(tmp: Path, meshes, skin, points_cam, result, depth, K) -> None:
+    """``meshes``: the bones posed in the camera's frame; ``skin``: the FEM's skin there (vertices, faces)
+    or None."""
     for b, m in meshes.items():
         write_surface(tmp / f"{b}.stl", m, "LPS")
     (tmp / "result.json").write_text(json.dumps(result, indent=1), encoding="utf-8")
@@ -191,10 +210,9 @@ def _write_into(tmp: Path, subject, model, recon, poses, points_cam, T_cam_world
                                          colors=[(90, 170, 255)], radii=[0.6]), static=True)
     for b, m in meshes.items():
         R.log_mesh(rec, f"camera/{b}", m, R.BONE_COLOURS[b])
-    if recon.grid_x is not None:  # the FEM's skin (the mechanism alone has none)
-        skin = transform_points(T_cam_world, recon.locate("femur", model.skin_vertices))
-        rec.log("camera/skin", rr.Mesh3D(vertex_positions=skin.astype(np.float32),
-                                         triangle_indices=np.asarray(model.skin_faces, np.uint32),
+    if skin is not None:
+        rec.log("camera/skin", rr.Mesh3D(vertex_positions=skin[0].astype(np.float32),
+                                         triangle_indices=np.asarray(skin[1], np.uint32),
                                          albedo_factor=R.BONE_COLOURS["skin"]), static=True)
     rec.log("camera/image", rr.Pinhole(image_from_camera=cam.K, resolution=[w, h]), static=True)
     rec.log("camera/image/depth", rr.DepthImage(np.round(depth).astype(np.uint16), meter=1.0), static=True)
