@@ -891,3 +891,26 @@ def test_case_set_build_terminated_leaves_nothing(tmp_path):
     assert p.returncode == 130 and "Traceback" not in err
     assert err.strip().splitlines()[-1] == f"build_case_set: interrupted; {tmp_path / 'set'} not written"
     assert not list(tmp_path.iterdir())
+
+
+def test_a_version_1_case_sets_intrinsics_are_read_in_the_pixel_centre_convention(small_case_set, tmp_path):
+    """A case set built before the intrinsics put pixel centres at whole coordinates (version 1) holds depth
+    images rendered with the ray caster's principal point, half a pixel further: read as version 2 with it
+    moved back, so that its points are the same as when it was built; an unknown version is refused."""
+    from knee.app.experiments.case_set import read_case_set
+    from knee.foundations.errors import KneeInputError
+
+    new = read_case_set(small_case_set)
+    text = (small_case_set / "case-set.toml").read_text()
+    assert new["version"] == 2 and "version = 2" in text
+    for version, says in (("1", None), ("3", "version must be a whole number from 1 to 2, got 3")):
+        old = tmp_path / f"v{version}"
+        old.mkdir()
+        (old / "case-set.toml").write_text(text.replace("version = 2", f"version = {version}"))
+        if says:
+            with pytest.raises(KneeInputError, match=says):
+                read_case_set(old)
+            continue
+        index = read_case_set(old)
+        for a, b in zip(index["case"], new["case"]):
+            np.testing.assert_allclose(a["intrinsics"], np.array(b["intrinsics"]) - [0.0, 0.0, 0.5, 0.5])

@@ -42,7 +42,7 @@ def test_example_fit_synthetic_subject():
 
 def test_example_fem_with_prior():
     r = _example("fem_with_prior").main()
-    assert r["points"] == 177560
+    assert r["points"] == 177664  # 177560 before the virtual camera's pixel centres moved half a pixel
     assert abs(r["flexion_error_deg"]) < 1.5
     # the solver's refactorisations follow measured times: results agree to its tolerance, not bit for bit
     # (measured at the bones' rigid poses; the shank's points weighed as the patches a skin model errs over:
@@ -52,10 +52,12 @@ def test_example_fem_with_prior():
     # in the posed-skin fit rather than dropped after it: 2.642 mm, 3.794 mm, the flexion 0.39 deg off, the
     # tibia's correction 0.50 -> 0.67 deg: on this truth the free fit's knee position was the better one;
     # the collateral springs rebased with the tissue: 2.545 mm, 3.660 mm, the flexion 0.33 deg off; the bones
-    # slid apart where they overlap: the same, they do not here)
-    assert r["footprints_mm"] == pytest.approx(2.545, abs=0.05)
-    assert r["epiphysis_mm"] == pytest.approx(3.660, abs=0.05)
-    assert r["tibia_correction_deg"] == pytest.approx(0.67, abs=0.1)
+    # slid apart where they overlap: the same, they do not here; the virtual camera's pixel centres at whole
+    # pixel coordinates, its rays half a pixel over: 2.605 mm, 3.764 mm, the correction 0.74 deg, the depth
+    # noise falling on other points of the skin)
+    assert r["footprints_mm"] == pytest.approx(2.605, abs=0.05)
+    assert r["epiphysis_mm"] == pytest.approx(3.764, abs=0.05)
+    assert r["tibia_correction_deg"] == pytest.approx(0.74, abs=0.1)
 
 
 def readme_snippets() -> list[str]:

@@ -236,3 +236,28 @@ def test_icp_recovers_a_rigid_offset(volunteer):
     assert np.linalg.norm(reg - truth, axis=1).mean() < 0.5
     assert np.sqrt((SurfaceQuery.of(skin).signed_distance(reg) ** 2).mean()) < 0.3
     assert rmse < 1.5 and fitness > 0.9  # rmse: the depth noise (about 0.8 mm here)
+
+
+def test_pixel_centres_lie_at_whole_pixel_coordinates_as_measured_intrinsics_state_them():
+    """Intrinsics as OpenCV and librealsense give them: pixel (u, v)'s centre is at (u, v), so a point is
+    seen at u = fx x / z + cx. Closed forms: a depth image's pixel back-projects to ((u - cx) z / fx,
+    (v - cy) z / fy, z); a virtual camera's depth of the tilted plane z = a + b x at pixel (u, v) is
+    a / (1 - b (u - cx) / fx), which a half-pixel shift of the principal point (the ray caster's own
+    convention) would miss by about b a (z / fx) / 2 per pixel."""
+    K = np.array([[500.0, 0.0, 31.5], [0.0, 480.0, 20.25], [0.0, 0.0, 1.0]])
+    depth = np.zeros((40, 64))
+    depth[7, 50] = 400.0
+    np.testing.assert_allclose(backproject(depth, K), [[(50 - 31.5) * 400.0 / 500.0, (7 - 20.25) * 400.0 / 480.0,
+                                                        400.0]])
+    a, b = 400.0, 1.5  # the plane z = a + b x, steep enough that half a pixel changes the depth by ~0.5 mm
+    plane = trimesh.Trimesh(vertices=[[-300.0, -300.0, a - 300 * b], [300.0, -300.0, a + 300 * b],
+                                      [300.0, 300.0, a + 300 * b], [-300.0, 300.0, a - 300 * b]],
+                            faces=[[0, 1, 2], [0, 2, 3]])
+    cam = Camera(K=K, width=64, height=40, T_world_cam=np.eye(4))
+    d = render_depth(plane.vertices, plane.faces, cam)
+    u = np.arange(64)[None, :].repeat(40, axis=0)
+    expected = a / (1.0 - b * (u - K[0, 2]) / K[0, 0])
+    np.testing.assert_allclose(d, expected, rtol=1e-5)
+    # and the rendered image back-projects onto the plane
+    p = backproject(d, K)
+    np.testing.assert_allclose(p[:, 2], a + b * p[:, 0], atol=1e-3)

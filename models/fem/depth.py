@@ -5,7 +5,8 @@ by :mod:`knee.foundations.pointclouds`.
 Camera conventions: a pinhole camera with intrinsics ``K`` (3, 3) (pixels); the pose ``T_world_cam``
 (4, 4) gives the camera's axes in the world (x right, y down, z forward: the optical axis); a depth
 image holds, per pixel, the depth along the optical axis in mm (0 where nothing was seen). Pixel (u, v)
-(column, row) looks through the pixel centre ``(u + 0.5, v + 0.5)``.
+(column, row) has its centre at ``(u, v)``, the coordinates ``K`` projects to (OpenCV's and librealsense's
+convention, :mod:`knee.foundations.pointclouds`).
 """
 
 from __future__ import annotations
@@ -71,7 +72,11 @@ def render_depth(vertices, faces, camera: Camera) -> np.ndarray:
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
                         o3d.core.Tensor(np.asarray(faces, np.uint32)))
-    rays = scene.create_rays_pinhole(o3d.core.Tensor(camera.K), o3d.core.Tensor(camera.T_cam_world),
+    # open3d casts pixel u's ray through u + 0.5 in its intrinsics' coordinates: the principal point moved by
+    # half a pixel makes that ray pass through u in ours (pixel centres at whole coordinates)
+    K = np.array(camera.K, float)
+    K[:2, 2] += 0.5
+    rays = scene.create_rays_pinhole(o3d.core.Tensor(K), o3d.core.Tensor(camera.T_cam_world),
                                      camera.width, camera.height)
     t = scene.cast_rays(rays)["t_hit"].numpy().astype(float)
     t[~np.isfinite(t)] = 0.0

@@ -182,7 +182,8 @@ def build_parser() -> argparse.ArgumentParser:
     fe.add_argument("--seed", type=seed, help="seed of the depth noise (0)")
     fe.add_argument("--cloud", help="a measured point cloud (.ply/.pcd/.xyz/.pts, mm) instead of the virtual camera")
     fe.add_argument("--depth", help="a measured depth image (16-bit PNG or .npy) instead of the virtual camera")
-    fe.add_argument("--intrinsics", help="fx,fy,cx,cy of the depth image (pixels)")
+    fe.add_argument("--intrinsics", help="fx,fy,cx,cy of the depth image (pixels; pixel centres at whole "
+                                         "coordinates, as OpenCV and librealsense give them)")
     fe.add_argument("--depth-scale", type=float, default=1.0, help="depth units to mm (1)")
     fe.add_argument("--pose", help="phantom: text file with the 4x4 camera-to-model transform (default identity)")
     fe.add_argument("--max-steps", type=int, help="phantom: step limit (400)")

@@ -4,7 +4,8 @@
 Camera conventions: a pinhole camera with intrinsics ``K`` (3, 3) (pixels); the pose ``T_world_cam``
 (4, 4) gives the camera's axes in the world (x right, y down, z forward: the optical axis); a depth
 image holds, per pixel, the depth along the optical axis (0 where nothing was seen), in mm after
-``depth_scale``. Pixel (u, v) (column, row) looks through the pixel centre ``(u + 0.5, v + 0.5)``.
+``depth_scale``. Pixel (u, v) (column, row) has its centre at ``(u, v)``, the coordinates ``K`` projects
+to, as OpenCV and librealsense state intrinsics: a point (x, y, z) is seen at ``u = fx x / z + cx``.
 Points are ``(P, 3)`` float arrays in mm.
 """
 
@@ -35,8 +36,8 @@ def backproject(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray | None
         raise KneeInputError("intrinsics must be a 3x3 matrix with positive focal lengths")
     v, u = np.nonzero((d > 0) & (np.isfinite(d)) & ((d <= max_depth) if max_depth else True))
     z = d[v, u]
-    x = (u + 0.5 - K[0, 2]) / K[0, 0] * z
-    y = (v + 0.5 - K[1, 2]) / K[1, 1] * z
+    x = (u - K[0, 2]) / K[0, 0] * z
+    y = (v - K[1, 2]) / K[1, 1] * z
     p = np.column_stack([x, y, z])
     if T_world_cam is not None:
         T = np.asarray(T_world_cam, float)

@@ -262,9 +262,9 @@ def _points_image(points_cam, size: int = 900, margin: int = 40) -> tuple[np.nda
     w, h = (np.ceil((hi - lo) * f).astype(int) + 2 * margin)
     cx, cy = margin - lo * f
     K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
-    # the pixel whose centre (u + 0.5) is nearest the projection, as the back-projection reads it
-    u = np.clip(np.floor(n[:, 0] * f + cx).astype(int), 0, w - 1)
-    v = np.clip(np.floor(n[:, 1] * f + cy).astype(int), 0, h - 1)
+    # the pixel whose centre is nearest the projection (pixel centres at whole coordinates)
+    u = np.clip(np.round(n[:, 0] * f + cx).astype(int), 0, w - 1)
+    v = np.clip(np.round(n[:, 1] * f + cy).astype(int), 0, h - 1)
     depth = np.full((h, w), np.inf)
     np.minimum.at(depth, (v, u), p[:, 2])
     # the gaps between the points of a sparser cloud than the image's pixels, filled from the nearest

@@ -79,6 +79,9 @@ from knee.models.mechanism.params import (
 from knee.models.prior import VOXEL_MM
 
 FORMAT = "knee-case-set"
+#: Version 2: the intrinsics put pixel centres at whole coordinates (OpenCV's and librealsense's convention);
+#: a version 1 set's are the ray caster's, whose principal point lies half a pixel further, and are read so.
+VERSION = 2
 #: Camera placements: azimuth toward lateral, elevation toward proximal (deg), distance (mm); "paper" is
 #: seed 000's (about 35 cm, oblique).
 PLACEMENTS = {"paper": (35.0, 30.0, 350.0), "frontal": (0.0, 15.0, 400.0), "lateral": (70.0, 35.0, 300.0)}
@@ -399,7 +402,7 @@ def truth_patella(subject, anatomy, T_ct_femur, truth: Mechanism):
 
 
 def _write_index(out: Path, seed: int, entries, cases, patella: bool = False) -> None:
-    lines = [f'format = "{FORMAT}"', "version = 1", f"seed = {int(seed)}",
+    lines = [f'format = "{FORMAT}"', f"version = {VERSION}", f"seed = {int(seed)}",
              f"truth_patella = {'true' if patella else 'false'}", ""]
     for e in entries:
         lines += ["[[anatomy]]", f"name = {toml_string(e.name)}", f"subject = {toml_string(str(e.subject))}",
@@ -438,6 +441,13 @@ def read_case_set(folder) -> dict:
                                                                          else f"unknown anatomy {c['anatomy']!r}"))
     if not index.get("case"):
         raise KneeInputError(f"{path}: no cases")
+    version = index.get("version", 1)
+    if not isinstance(version, int) or isinstance(version, bool) or not 1 <= version <= VERSION:
+        raise KneeInputError(f"{path}: version must be a whole number from 1 to {VERSION}, got {version!r}")
+    if version < 2:  # its depth images were rendered with the principal point half a pixel on: read as such
+        for c in index["case"]:
+            c["intrinsics"] = [*c["intrinsics"][:2], c["intrinsics"][2] - 0.5, c["intrinsics"][3] - 0.5]
+        index["version"] = VERSION
     return index
 
 
