@@ -91,13 +91,21 @@ def test_bad_subject_input_is_one_line_and_writes_nothing(case, tmp_path):
     not_ply, not_png = tmp_path / "cloud.ply", tmp_path / "depth.png"
     not_ply.write_text("x y z\n1 2 3\n")
     not_png.write_text("not an image\n")
+    metres = tmp_path / "metres.ply"
+    pts = np.asarray(o3d.io.read_point_cloud(str(tmp / "cloud.ply")).points) / 1000.0
+    o3d.io.write_point_cloud(str(metres), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)))
     for argv, fragment in [
             (("--prior", tmp / "prior.toml", "--cloud", not_ply), "not a PLY file"),
             (("--prior", tmp / "prior.toml", "--depth", not_png, "--intrinsics", "500,500,32,24"),
              "not a readable depth image"),
             (("--prior", tmp_path / "missing.toml", "--cloud", tmp / "cloud.ply"), "--prior: "),
             (("--prior", tmp / "prior.toml", "--cloud", tmp / "cloud.ply", "--depth", img, "--intrinsics",
-              "500,500,32,24"), "not both")]:
+              "500,500,32,24"), "not both"),
+            # a cloud in metres (as a camera's viewer exports it) and a depth image read in metres
+            (("--prior", tmp / "prior.toml", "--cloud", metres), "in metres? give --cloud-scale 1000"),
+            (("--prior", tmp / "prior.toml", "--cloud", metres, "--cloud-scale", "-1"), "--cloud-scale must be a"),
+            (("--prior", tmp / "prior.toml", "--depth", img, "--intrinsics", "500,500,32,24", "--depth-scale", "0.001"),
+             "in metres? give --depth-scale 1")]:
         p = run("fem", d, *argv, "--out", out)
         assert_clean_error(p, fragment)
         assert len(p.stderr.strip().splitlines()) == 1, p.stderr

@@ -185,6 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     fe.add_argument("--intrinsics", help="fx,fy,cx,cy of the depth image (pixels; pixel centres at whole "
                                          "coordinates, as OpenCV and librealsense give them)")
     fe.add_argument("--depth-scale", type=float, default=1.0, help="depth units to mm (1)")
+    fe.add_argument("--cloud-scale", type=float, default=1.0, help="the cloud's units to mm (1; 1000 for metres)")
     fe.add_argument("--pose", help="phantom: text file with the 4x4 camera-to-model transform (default identity)")
     fe.add_argument("--max-steps", type=int, help="phantom: step limit (400)")
     fe.add_argument("--bone-stall", type=float, metavar="DEG",

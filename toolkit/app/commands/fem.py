@@ -35,7 +35,10 @@ def measured_points(args):
         except (OSError, ValueError):
             raise KneeInputError(f"--pose {args.pose}: not a readable 4x4 matrix (16 numbers)") from None
     if args.cloud:
-        pts = load_point_cloud(args.cloud)
+        if not (math.isfinite(args.cloud_scale) and args.cloud_scale > 0):
+            raise KneeInputError(f"--cloud-scale must be a positive number, got {args.cloud_scale}")
+        pts = fem_subject.checked_span(load_point_cloud(args.cloud) * args.cloud_scale, "--cloud-scale",
+                                       args.cloud_scale)
         return pts if pose is None else pts @ pose[:3, :3].T + pose[:3, 3]
     if args.depth:
         if not args.intrinsics:
@@ -44,7 +47,8 @@ def measured_points(args):
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
         if not (args.depth_scale > 0 and math.isfinite(args.depth_scale)):
             raise KneeInputError(f"--depth-scale must be a positive number, got {args.depth_scale}")
-        return load_depth_image(args.depth, K, pose, args.depth_scale)
+        return fem_subject.checked_span(load_depth_image(args.depth, K, pose, args.depth_scale), "--depth-scale",
+                                        args.depth_scale)
     if args.intrinsics or args.pose:
         raise KneeInputError("--intrinsics and --pose go with --depth or --cloud")
     return None

@@ -67,6 +67,23 @@ def _read_pose(path) -> np.ndarray:
     return T
 
 
+#: The span a camera's view of a knee can have, mm: a smaller one is a cloud or depth image in other units
+#: (metres), a larger one in smaller units (micrometres).
+VIEW_SPAN_MM = (40.0, 1e5)
+
+
+def checked_span(points, flag: str, scale: float) -> np.ndarray:
+    """``points`` (P, 3) in mm after ``flag``'s ``scale``, or a one-line error when their span cannot be a
+    knee's view in millimetres (the unit the scale was meant to give)."""
+    span = float(np.ptp(points, axis=0).max()) if len(points) else 0.0
+    lo, hi = VIEW_SPAN_MM
+    if len(points) and not lo <= span <= hi:
+        guess = f"in metres? give {flag} {1000.0 * scale:g}" if span < lo else f"give {flag} to make it mm"
+        raise KneeInputError(f"the measured points span {span:.3g} mm with {flag} {scale:g}; a camera's view of a "
+                             f"knee spans {lo:g} mm or more: {guess}")
+    return points
+
+
 def _points(args):
     """(points (P, 3) camera frame, depth image or None, K or None)."""
     if args.cloud and args.depth:
@@ -77,7 +94,10 @@ def _points(args):
     if args.cloud:
         if args.intrinsics:
             raise KneeInputError("--intrinsics goes with --depth, not --cloud")
-        return load_point_cloud(args.cloud), None, None
+        if not (math.isfinite(args.cloud_scale) and args.cloud_scale > 0):
+            raise KneeInputError(f"--cloud-scale must be a positive number, got {args.cloud_scale}")
+        pts = checked_span(load_point_cloud(args.cloud) * args.cloud_scale, "--cloud-scale", args.cloud_scale)
+        return pts, None, None
     if not args.intrinsics:
         raise KneeInputError("--depth needs --intrinsics fx,fy,cx,cy (pixels)")
     fx, fy, cx, cy = numbers(args.intrinsics, 4, "--intrinsics")
@@ -91,7 +111,8 @@ def _points(args):
         raise KneeInputError(f"--depth {args.depth} is {w}x{h} pixels but --intrinsics puts the principal point at "
                              f"({cx:g}, {cy:g}), outside it: the intrinsics do not belong to this image")
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    return backproject(depth, K, None, args.depth_scale), depth * args.depth_scale, K
+    pts = checked_span(backproject(depth, K, None, args.depth_scale), "--depth-scale", args.depth_scale)
+    return pts, depth * args.depth_scale, K
 
 
 def run(args) -> int:
