@@ -54,6 +54,10 @@ def test_the_bones_of_a_subject_in_the_cameras_frame(case):
         assert (out / f).stat().st_size > 0, f
     r = json.loads((out / "result.json").read_text())
     assert abs(r["flexion_deg"] - math.degrees(case["tf"][0])) < 2.0
+    # the initial pose was turned 20 deg about the camera (about 150 mm at the knee), the result near the truth:
+    # its offset from the result is about that, and no warning
+    assert r["initial_pose_off"]["deg"] == pytest.approx(20.0, abs=3.0) and r["initial_pose_off"]["mm"] > 100.0
+    assert not any("--initial-pose was" in w for w in r["warnings"])
     # the femur's CT frame in the camera: within a few mm and about a degree of the truth (the cloud came
     # from the truth's phantom skin, not from the subject's own: the thigh's axial position is the loosest)
     err = np.linalg.inv(case["T_cam_ct"]) @ np.array(r["T_camera_femur_ct"])
@@ -82,6 +86,16 @@ def test_bad_subject_input_is_one_line_and_writes_nothing(case, tmp_path):
     np.save(img, np.full((48, 64), 400.0))
     assert_clean_error(run("fem", d, "--prior", tmp / "prior.toml", "--depth", img, "--intrinsics", "500,500,640,360",
                            "--out", out), "64x48 pixels", "principal point")
+    # the camera's pose in the CT frame given instead of the CT frame in the camera's: the registration finds
+    # the knee without it, and the result says how far off it was
+    inverted = tmp_path / "inverted.txt"
+    np.savetxt(inverted, np.linalg.inv(case["T_cam_ct"]))
+    p = run("fem", d, "--prior", tmp / "prior.toml", "--cloud", tmp / "cloud.ply", "--initial-pose", inverted,
+            "--out", tmp_path / "inverted", "--quiet")
+    assert p.returncode == 0, p.stderr
+    r = json.loads((tmp_path / "inverted" / "result.json").read_text())
+    assert r["initial_pose_off"]["deg"] > 90.0 and any("--initial-pose was" in w for w in r["warnings"])
+    assert "warning: --initial-pose was" in p.stdout
     bad = tmp_path / "pose.txt"
     bad.write_text("1 0 0 0\n0 2 0 0\n0 0 1 0\n0 0 0 1\n")
     assert_clean_error(run("fem", d, "--prior", tmp / "prior.toml", "--cloud", tmp / "cloud.ply", "--initial-pose", bad,

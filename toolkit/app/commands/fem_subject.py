@@ -34,6 +34,7 @@ import rerun.blueprint as rrb  # noqa: E402
 from matplotlib.colors import ListedColormap  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 from scipy.ndimage import minimum_filter  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
 
 from knee.app.console import ProgressBar, numbers, out_dir, say  # noqa: E402
 from knee.fitting.pipeline import anatomical_frames  # noqa: E402
@@ -54,6 +55,11 @@ from knee.models.mechanism.params import load_model  # noqa: E402
 
 #: The bones' silhouettes over the camera's image (the overlay and the recording's 2-D view), RGB.
 SILHOUETTE_COLOURS = {"femur": (31, 119, 180), "tibia": (255, 127, 14)}
+
+
+#: A turn of ``--initial-pose`` from where the points put the femur beyond which it is said (deg): well past
+#: the 30 deg it is meant to be within, as a pose given the other way round (the camera in the CT) is.
+INITIAL_POSE_WARN_DEG = 45.0
 
 
 def _read_pose(path) -> np.ndarray:
@@ -170,6 +176,19 @@ def run(args) -> int:
     tf_pose = invert_poses(T_ct_model) @ invert_poses(poses_run["femur"]) @ poses_run["tibia"] @ frames["tibia"]
     tf = pose_to_joint(tf_pose)
     poses = {b: S @ T @ S for b, T in poses_run.items()}
+    notes = list(recon.notes)
+    initial_off = None
+    if init_pose is not None:
+        # how far the initial pose was from where the points put the femur (at the knee: the femur frame's
+        # origin); the registration recovers from a wrong one, and says so
+        off = invert_poses(init_pose) @ poses_run["femur"]
+        knee = T_ct_model[:3, 3]
+        initial_off = {"deg": math.degrees(Rotation.from_matrix(off[:3, :3]).magnitude()),
+                       "mm": float(np.linalg.norm(off[:3, :3] @ knee + off[:3, 3] - knee))}
+        if initial_off["deg"] > INITIAL_POSE_WARN_DEG:
+            notes.append(f"--initial-pose was {initial_off['deg']:.0f} deg and {initial_off['mm']:.0f} mm (at the "
+                         "knee) from where the points put the femur (the registration found the knee without it): check it "
+                         "gives the CT frame in the camera's, not the camera in the CT")
     result = {
         "subject": subject.name, "side": subject.side, "method": recon.method, "prior": str(args.prior),
         "flexion_deg": math.degrees(tf[0]),
@@ -181,8 +200,9 @@ def run(args) -> int:
                 "flexion_estimate_rms_mm": None if recon.estimate is None else recon.estimate.rms,
                 "flexion_estimate_inliers": None if recon.estimate is None else recon.estimate.inliers,
                 "steps": recon.steps, "converged": recon.converged},
+        "initial_pose_off": initial_off,
         "seconds": {"model": built, "registration_and_method": seconds},
-        "warnings": list(recon.notes),
+        "warnings": notes,
     }
     # the CT bones as scanned (a left knee's mirrored back), posed in the camera's frame; the FEM's skin too
     meshes = {b: (mirror_mesh(subject.ct[b]) if subject.side == "left" else subject.ct[b].copy()).apply_transform(T)
@@ -195,7 +215,7 @@ def run(args) -> int:
     _write_outputs(out, meshes, skin, points_cam, result, depth, K)
     print(f"{subject.name}: flexion {result['flexion_deg']:.1f} deg ({recon.method}), {recon.steps} steps in "
           f"{seconds:.1f} s; registration: {100 * rough.inliers:.0f} % of the points within 5 mm of the skin")
-    for w in recon.notes:
+    for w in notes:
         print(f"warning: {w}")
     print(f"results: {out / 'result.json'}, {out / 'femur.stl'}, {out / 'tibia.stl'}, {out / 'overlay.png'}\n"
           f"recording: {out / 'fem.rrd'}  (open with: rerun {out / 'fem.rrd'})")
