@@ -261,3 +261,21 @@ def test_pixel_centres_lie_at_whole_pixel_coordinates_as_measured_intrinsics_sta
     # and the rendered image back-projects onto the plane
     p = backproject(d, K)
     np.testing.assert_allclose(p[:, 2], a + b * p[:, 0], atol=1e-3)
+
+
+def test_dominant_planes_are_a_tables_not_a_legs():
+    """A cylinder (a leg, 60 mm radius) in front of a large plane (a table) holding most of the points: the
+    plane's points are found (and only they, bar the few of the cylinder within 5 mm of it); the cylinder
+    alone has no dominant plane."""
+    from knee.foundations.pointclouds import dominant_planes
+
+    rng = np.random.default_rng(0)
+    t, y = rng.uniform(0, 2 * np.pi, 20000), rng.uniform(-150, 150, 20000)
+    leg = np.column_stack([60.0 * np.cos(t), y, 400.0 + 60.0 * np.sin(t)])
+    g = rng.uniform(-400, 400, size=(60000, 2))
+    table = np.column_stack([g[:, 0], g[:, 1], np.full(len(g), 470.0)]) + rng.normal(0, 1.0, (len(g), 3))
+    on = dominant_planes(np.vstack([leg, table]))
+    assert on[len(leg):].mean() > 0.99
+    assert on[:len(leg)].mean() < 0.02  # the cylinder's points within 5 mm of the table's plane
+    assert not dominant_planes(leg).any()
+    assert dominant_planes(table).all() and not dominant_planes(table[:2]).any()  # a plane alone; too few points

@@ -64,7 +64,7 @@ from trimesh.sample import sample_surface
 from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
 from knee.foundations.errors import DivergenceError, KneeError, KneeInputError
 from knee.foundations.geometry import rigid_register
-from knee.foundations.pointclouds import icp, icp_held, voxel_downsample
+from knee.foundations.pointclouds import dominant_planes, icp, icp_held, voxel_downsample
 from knee.models.fem.anatomy import bone_clearance, bone_queries, in_contact
 from knee.models.fem.elements import HEX_CORNERS, hex_inverted
 from knee.models.fem.fields import DisplacementTethers, MappedSprings, affine_point_map
@@ -1096,12 +1096,64 @@ def reconstruct_in_camera(model: AssociationModel, prior: Mechanism, points_cam,
     """A method on points (P, 3) in a camera's frame where the knee's pose is known only roughly:
     ``T_init`` (4, 4), camera to model (femur) frame, within about 30 deg and 50 mm, or None (a global
     registration). The cloud is placed on the prior's skin (:func:`knee.models.prior.register_roughly`),
-    then the method runs in the model frame. Returns (:class:`Reconstruction`, the registration); the
-    reconstruction's world is the registration's frame, ``invert_poses(registration.T_model_world)`` takes
-    it to the camera. Raises :class:`KneeInputError` when the points do not show this knee."""
-    rough = register_roughly(skin_model(model, prior, options.get("flexion_skin", "blend")), points_cam, T_init)
+    then the method runs in the model frame. Where the placed cloud mostly misses the skin, as a depth
+    image that holds the table, the other leg or the room does, the points far from the skin are left out
+    and the placement made again (:func:`drop_background`, said in the notes). Returns
+    (:class:`Reconstruction`, the registration); the reconstruction's world is the registration's frame,
+    ``invert_poses(registration.T_model_world)`` takes it to the camera. Raises :class:`KneeInputError` when
+    the points do not show this knee."""
+    skin = skin_model(model, prior, options.get("flexion_skin", "blend"))
+    points_cam = np.asarray(points_cam, float)
+    rough = register_roughly(skin, points_cam, T_init)
+    dropped = 0
+    if rough.inliers < MIN_REGISTERED:
+        points_cam, rough, dropped = drop_background(skin, points_cam, rough, T_init)
     if rough.inliers < MIN_REGISTERED:
         raise KneeInputError(f"the points do not show this knee: after registration only {100 * rough.inliers:.0f} % "
-                             f"of them lie within 5 mm of its skin (RMS {rough.rms:.1f} mm)")
+                             f"of them lie within 5 mm of its skin (RMS {rough.rms:.1f} mm)"
+                             + (f", with the {dropped} points far from it left out" if dropped else ""))
     pts = transform_points(rough.T_model_world, points_cam)
-    return prior_method(method, model, prior, pts, max_steps=max_steps, **options), rough
+    recon = prior_method(method, model, prior, pts, max_steps=max_steps, **options)
+    if dropped:
+        recon.notes.insert(0, f"{dropped} of the {dropped + len(points_cam)} points were left out as background (a "
+                              f"table, a wall, the other leg): on a dominant plane, or over {BACKGROUND_MM:g} mm from "
+                              "the knee's skin once placed")
+    return recon, rough
+
+
+#: Where the roughly placed points mostly miss the skin, those farther than this from the skin posed near
+#: the rough match's flexion (mm) are taken for background (:func:`drop_background`): the skin model's own
+#: error and the rough placement's are a few mm, the support under a leg or the other leg tens of mm away.
+BACKGROUND_MM = 25.0
+#: The flexions around the rough match's at which the skin is posed for that (deg): the rough match's
+#: candidate flexions are 30 deg apart, so the knee may lie up to 15 deg from it.
+BACKGROUND_FLEXIONS_DEG = tuple(range(-20, 21, 5))
+
+
+def drop_background(skin: SkinModel, points_cam, rough, T_init=None, rounds: int = 1):
+    """The background of a depth image left out: its dominant planes (a table, a wall:
+    :func:`knee.foundations.pointclouds.dominant_planes`),
+    the rest placed again (from ``T_init``, or globally), then the points farther than :data:`BACKGROUND_MM`
+    from the prior's skin posed at any flexion within :data:`BACKGROUND_FLEXIONS_DEG` of the match's and
+    the rest placed again from that match, ``rounds`` times. Returns (the points kept, the new
+    registration, how many were left out); with too few points left, the input unchanged (and ``rough``,
+    and 0)."""
+    points_cam = np.asarray(points_cam, float)
+    lo, hi = skin.mech.assembly_range
+    keep = ~dominant_planes(points_cam, VOXEL_MM)
+    if keep.sum() < MIN_POINTS:
+        return points_cam, rough, 0
+    best = rough if keep.all() else register_roughly(skin, points_cam[keep], T_init)
+    for _ in range(rounds):
+        p = transform_points(best.T_model_world, points_cam)
+        d = np.full(len(p), np.inf)
+        for a in sorted({float(np.clip(best.flexion + math.radians(k), lo, hi)) for k in BACKGROUND_FLEXIONS_DEG}):
+            d = np.minimum(d, skin.samples(a)[2].query(p, distance_upper_bound=BACKGROUND_MM)[0])
+        near = (d < BACKGROUND_MM) & keep
+        if near.sum() < MIN_POINTS:
+            break
+        keep = near
+        best = register_roughly(skin, points_cam[keep], best.T_model_world)
+    if keep.all():
+        return points_cam, rough, 0
+    return points_cam[keep], best, int(len(keep) - keep.sum())

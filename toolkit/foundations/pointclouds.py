@@ -113,6 +113,30 @@ def load_point_cloud(path) -> np.ndarray:
     return pts[valid]
 
 
+def dominant_planes(points, voxel: float = 4.0, share: float = 0.3, max_planes: int = 2,
+                    within_mm: float = 5.0) -> np.ndarray:
+    """Which points (P,) bool lie within ``within_mm`` of the cloud's dominant planes: each found by RANSAC
+    (open3d, seeded) on the points left, voxel-thinned, and kept while it holds at least ``share`` of them.
+    A depth image's table or wall is such a plane; a leg's skin is not (its curvature keeps any 5 mm slab of
+    it to a small share)."""
+    points = np.asarray(points, float)
+    on = np.zeros(len(points), bool)
+    for k in range(max_planes):
+        rest = np.nonzero(~on)[0]
+        if len(rest) < 3:
+            break
+        thin = voxel_downsample(points[rest], voxel)
+        if len(thin) < 3:
+            break
+        o3d.utility.random.seed(k)
+        (a, b, c, d), inl = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(thin)).segment_plane(
+            distance_threshold=within_mm, ransac_n=3, num_iterations=300)
+        if len(inl) < share * len(thin):
+            break
+        on[rest[np.abs(points[rest] @ np.array([a, b, c]) + d) < within_mm]] = True
+    return on
+
+
 def voxel_downsample(points, voxel: float) -> np.ndarray:
     """One point (the mean) per occupied voxel, vectorised (the voxel's three indices packed into one
     integer key, so the grouping is a 1-D unique)."""
