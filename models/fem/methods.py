@@ -1131,8 +1131,9 @@ BACKGROUND_FLEXIONS_DEG = tuple(range(-20, 21, 5))
 
 
 def drop_background(skin: SkinModel, points_cam, rough, T_init=None, rounds: int = 1):
-    """The background of a depth image left out: its dominant planes (a table, a wall:
-    :func:`knee.foundations.pointclouds.dominant_planes`),
+    """The background of a depth image left out: its dominant plane (a table, a wall:
+    :func:`knee.foundations.pointclouds.dominant_planes`; one only, and only here, where most points miss
+    the skin: a leg's own skin has a 5 mm slab holding up to 42-47 % of its thinned points),
     the rest placed again (from ``T_init``, or globally), then the points farther than :data:`BACKGROUND_MM`
     from the prior's skin posed at any flexion within :data:`BACKGROUND_FLEXIONS_DEG` of the match's and
     the rest placed again from that match, ``rounds`` times. Returns (the points kept, the new
@@ -1140,7 +1141,7 @@ def drop_background(skin: SkinModel, points_cam, rough, T_init=None, rounds: int
     and 0)."""
     points_cam = np.asarray(points_cam, float)
     lo, hi = skin.mech.assembly_range
-    keep = ~dominant_planes(points_cam, VOXEL_MM)
+    keep = ~dominant_planes(points_cam, VOXEL_MM, max_planes=1)
     if keep.sum() < MIN_POINTS:
         return points_cam, rough, 0
     best = rough if keep.all() else register_roughly(skin, points_cam[keep], T_init)
