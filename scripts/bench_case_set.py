@@ -17,7 +17,6 @@ import csv
 import dataclasses
 import statistics
 import sys
-import time
 
 
 def main() -> int:
@@ -38,23 +37,18 @@ def main() -> int:
 
 
 def run(args) -> int:
-    from pathlib import Path
-
+    from knee.app.console import new_files, timed_progress
     from knee.app.experiments.case_set import read_case_set, run_case_set
     from knee.foundations.errors import KneeInputError
     from knee.foundations.files import staged_file
 
     index = read_case_set(args.cases)
-    if args.csv and Path(args.csv).exists():
-        raise KneeInputError(f"{args.csv} exists; not overwritten (give a new file)")
+    new_files(args.csv)
     only = [o for o in args.only.split(",") if o]
     select = (lambda c: any(o in c["id"] for o in only)) if only else None
     if select is not None and not any(select(c) for c in index["case"]):
         raise KneeInputError(f"--only {args.only} selects none of the {len(index['case'])} cases")
-    t0 = time.perf_counter()
-
-    def progress(i, n, text):
-        print(f"[{time.perf_counter() - t0:6.0f} s] {i}/{n} {text}", file=sys.stderr, flush=True)
+    progress = timed_progress()
 
     rows = {}
     rows["iv"] = run_case_set(args.cases, ["kinematics"], progress, select)

@@ -20,8 +20,6 @@ import argparse
 import csv
 import statistics
 import sys
-import time
-from pathlib import Path
 
 import numpy as np
 
@@ -38,26 +36,22 @@ def main() -> int:
     ap.add_argument("--method", default="links", choices=("links", "init"))
     ap.add_argument("--csv", default=None, help="write a row per case and stage here")
     args = ap.parse_args()
+    from knee.app.console import new_files, timed_progress
     from knee.app.experiments.case_set import diagnose_case_set, read_case_set
     from knee.foundations.errors import KneeError
     from knee.foundations.files import staged_file
     from knee.models.fem.methods import STAGES
     from knee.models.prior import MIN_SEEN_SHANK  # the cases that see the shank, as knee compare counts them
 
-    if args.csv and Path(args.csv).exists():
-        print(f"error: {args.csv} exists; not overwritten (give a new file)", file=sys.stderr)
-        return 2
     try:
+        new_files(args.csv)
         read_case_set(args.cases)
     except KneeError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     only = [o for o in args.only.split(",") if o]
     select = (lambda c: any(o in c["id"] for o in only)) if only else None
-    t0 = time.perf_counter()
-
-    def progress(i, n, text):
-        print(f"[{time.perf_counter() - t0:6.0f} s] {i}/{n} {text}", file=sys.stderr, flush=True)
+    progress = timed_progress()
 
     runs = diagnose_case_set(args.cases, args.method, progress, select)
     if not runs:

@@ -18,7 +18,6 @@ import math
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -75,14 +74,12 @@ def main():
     ap.add_argument("--azimuths", default="35,0,70",
                     help="camera placements: azimuths, deg, a comma list (35 oblique, 0 frontal, 70 lateral)")
     args = ap.parse_args()
-    from knee.app.console import flexion_list
+    from knee.app.console import flexion_list, new_files
     from knee.foundations.errors import KneeError
     from knee.foundations.files import staged_file
 
-    if args.out and Path(args.out).exists():
-        print(f"error: {args.out} exists; not overwritten (give a new file)", file=sys.stderr)
-        return 2
     try:
+        new_files(args.out)
         flexions = flexion_list(args.flexions)
         azimuths = [float(a) for a in args.azimuths.split(",")]
         if not all(math.isfinite(a) and -180.0 <= a <= 180.0 for a in azimuths):

@@ -37,6 +37,7 @@ def main():
                     help="the truth's motion: the template mechanism's (30/60/90 deg), or the lenhart2015 knee's "
                          "measured dynamic-MRI motion transferred as joint coordinates (20/30/45 deg)")
     args = ap.parse_args()
+    from knee.app.console import new_files
     from knee.foundations.errors import KneeError, KneeInputError
     from knee.models.fem.methods import METHODS
 
@@ -45,8 +46,7 @@ def main():
         unknown = [m for m in methods if m not in METHODS]
         if unknown or not methods:
             raise KneeInputError(f"--methods must be a comma list of {', '.join(METHODS)}, got {args.methods!r}")
-        if args.out and Path(args.out).exists():
-            raise KneeInputError(f"{args.out} exists; not overwritten (give a new file)")
+        new_files(args.out)
         return run(args, methods)
     except KneeError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -22,8 +22,6 @@ import csv
 import dataclasses
 import statistics
 import sys
-import time
-from pathlib import Path
 
 METHOD_LABELS = {"links": "(iii)", "init": "(ii)", "kinematics": "(iv)", "paper": "(i)"}
 
@@ -62,6 +60,7 @@ def main() -> int:
                     help="also the tissue's floor at 0 mm: the femur placed on the association model's skin posed "
                          "with the true bones (about 1 s per case)")
     args = ap.parse_args()
+    from knee.app.console import new_files, timed_progress
     from knee.app.experiments.case_set import read_case_set
     from knee.app.experiments.skin_floor import skin_floor
     from knee.foundations.errors import KneeError
@@ -69,19 +68,13 @@ def main() -> int:
     if args.plot and not args.compare:
         print("error: --plot needs --compare (the methods' errors to plot against the floors)", file=sys.stderr)
         return 2
-    for given in (args.csv, args.plot):
-        if given and Path(given).exists():
-            print(f"error: {given} exists; not overwritten (give a new file)", file=sys.stderr)
-            return 2
     try:
+        new_files(args.csv, args.plot)
         read_case_set(args.cases)
     except KneeError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    t0 = time.perf_counter()
-
-    def progress(i, n, text):
-        print(f"[{time.perf_counter() - t0:6.0f} s] {i}/{n} {text}", file=sys.stderr, flush=True)
+    progress = timed_progress()
 
     try:
         compared, femur = _compare_rows(args.compare) if args.compare else ({}, {})

@@ -11,6 +11,7 @@ import logging
 import math
 import signal
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +42,23 @@ def out_dir(path: str, force: bool, inputs=(), flag: str = "--out") -> Path:
     """An output folder (written later, as a whole, once the inputs have been checked): refused when it
     is or holds an input, cannot be written, or exists and is not empty (unless ``force``)."""
     return check_output(path, "folder", force, inputs, flag)
+
+
+def new_files(*paths) -> None:
+    """The scripts' output files (None skipped): one that exists is refused, never overwritten."""
+    for p in paths:
+        if p is not None and Path(p).exists():
+            raise KneeInputError(f"{p} exists; not overwritten (give a new file)")
+
+
+def timed_progress():
+    """A progress callback ``(i, n, text)`` for the scripts: one line on standard error per call, with the
+    seconds since it was made."""
+    t0 = time.perf_counter()
+
+    def progress(i, n, text):
+        say(f"[{time.perf_counter() - t0:6.0f} s] {i}/{n} {text}")
+    return progress
 
 
 #: The largest step count a run accepts (a bound on what can hang a run).
