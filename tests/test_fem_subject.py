@@ -216,6 +216,8 @@ def test_a_synthetic_subjects_depth_frame_through_knee_fem(tmp_path):
     rough = np.loadtxt(cam / "ct-in-camera-rough.txt")
     off = np.linalg.inv(np.array(truth["T_camera_femur_ct"])) @ rough
     assert np.degrees(Rotation.from_matrix(off[:3, :3]).magnitude()) == pytest.approx(15.0, abs=1e-6)
+    knee = frames["femur"][:3, 3]  # the femur frame's origin in the CT: the knee moves by the shift alone
+    assert np.linalg.norm(off[:3, :3] @ knee + off[:3, 3] - knee) == pytest.approx(25.0, abs=1e-6)
     # the README's walk-through (with the truth's endpoints moved 1-2 mm as the prior, for a shorter test)
     save_toml(perturb_endpoints(load_model(s / "truth.toml"), 1.0, 2.0, seed=3), tmp_path / "prior.toml")
     out = tmp_path / "fem"

@@ -187,8 +187,8 @@ def run(args) -> int:
                        "mm": float(np.linalg.norm(off[:3, :3] @ knee + off[:3, 3] - knee))}
         if initial_off["deg"] > INITIAL_POSE_WARN_DEG:
             notes.append(f"--initial-pose was {initial_off['deg']:.0f} deg and {initial_off['mm']:.0f} mm (at the "
-                         "knee) from where the points put the femur (the registration found the knee without it): check it "
-                         "gives the CT frame in the camera's, not the camera in the CT")
+                         "knee) from where the points put the femur (the registration found the knee without it): "
+                         "check it gives the CT frame in the camera's, not the camera in the CT")
     result = {
         "subject": subject.name, "side": subject.side, "method": recon.method, "prior": str(args.prior),
         "flexion_deg": math.degrees(tf[0]),

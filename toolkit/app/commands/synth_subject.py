@@ -23,8 +23,8 @@ from knee.models.fem.depth import DepthNoise, default_camera
 from knee.models.mechanism import Mechanism
 from knee.models.mechanism.params import load_model
 
-#: How far the rough CT pose written with a depth frame is from the truth: a turn (deg) and a shift (mm),
-#: about what a tracked arthroscope or a first guess from the set-up gives (``knee fem`` takes 30 deg, 50 mm).
+#: How far the rough CT pose written with a depth frame is from the truth at the knee (the femur frame's
+#: origin): a turn about it (deg) and a shift of it (mm), about what a first guess from the set-up gives.
 ROUGH_POSE_OFF = (15.0, 25.0)
 
 
@@ -57,7 +57,8 @@ def write_depth_frame(folder: Path, flexion_deg: float, seed: int) -> str:
     """Into ``folder/camera/``: ``depth.png``, the subject's truth (``truth.toml``) posed at ``flexion_deg``
     and seen by the oblique camera (350 mm, 35 deg lateral, 30 deg up; RealSense-like noise), a 16-bit PNG
     in mm; ``intrinsics.txt`` (fx,fy,cx,cy, pixels); ``ct-in-camera-rough.txt``, the CT frame in the
-    camera's (4x4) turned and moved :data:`ROUGH_POSE_OFF` from the truth, for ``--initial-pose``; and
+    camera's (4x4) turned about the knee and moved :data:`ROUGH_POSE_OFF` from the truth, for
+    ``--initial-pose``; and
     ``truth.json``, the true flexion, TF joint coordinates and bone poses (CT to camera) to check a result
     against. Returns the intrinsics as ``knee fem`` takes them."""
     folder = Path(folder)
@@ -71,7 +72,7 @@ def write_depth_frame(folder: Path, flexion_deg: float, seed: int) -> str:
     rng = np.random.default_rng(seed)
     axis = rng.normal(size=3)
     shift = rng.normal(size=3)
-    off = np.eye(4)
+    off = np.eye(4)  # in the femur's frame: turned about the knee, then moved
     off[:3, :3] = Rotation.from_rotvec(math.radians(ROUGH_POSE_OFF[0]) * axis / np.linalg.norm(axis)).as_matrix()
     off[:3, 3] = ROUGH_POSE_OFF[1] * shift / np.linalg.norm(shift)
     (folder / "camera").mkdir()
@@ -80,9 +81,9 @@ def write_depth_frame(folder: Path, flexion_deg: float, seed: int) -> str:
     K = cam.K
     intrinsics = f"{K[0, 0]:.6g},{K[1, 1]:.6g},{K[0, 2]:.6g},{K[1, 2]:.6g}"
     (folder / "camera" / "intrinsics.txt").write_text(intrinsics + "\n", encoding="utf-8")
-    np.savetxt(folder / "camera" / "ct-in-camera-rough.txt", off @ T_cam_femur,
+    np.savetxt(folder / "camera" / "ct-in-camera-rough.txt", T_cam_model @ off @ invert_poses(frames["femur"]),
                header=f"a rough pose of the CT frame in the camera's ({ROUGH_POSE_OFF[0]:g} deg and "
-                      f"{ROUGH_POSE_OFF[1]:g} mm off the truth), for knee fem --initial-pose")
+                      f"{ROUGH_POSE_OFF[1]:g} mm off the truth at the knee), for knee fem --initial-pose")
     truth_json = {"flexion_deg": math.degrees(tf[0]),
                   "tf_joint_coordinates": {name: (math.degrees(v) if k < 3 else float(v))
                                            for k, (name, v) in enumerate(zip(JOINT_COORDINATES, tf))},
