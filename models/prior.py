@@ -381,6 +381,11 @@ ROUGH_REACHES_MM = ((60.0, 30.0, 15.0), (30.0, 15.0))
 #: How far (deg, mm) a rough guess of the knee's pose may be off (``knee fem --initial-pose``, the honest
 #: benchmark's rough poses: 15-30 deg, 25-50 mm).
 ROUGH_GUESS_WITHIN = (30.0, 50.0)
+#: Most points (after the 4 mm voxels) a rough registration searches with; a larger cloud is searched with
+#: an even (seeded) subsample of this many, its best match then scored on all of them. A view of a knee
+#: holds fewer (the honest benchmark's 300 depth images: 3,000-7,000); a frame that also shows a table or a
+#: wall holds many more (32,000 for a table under a leg), and each ICP's cost grows with them.
+ROUGH_MAX_POINTS = 10_000
 
 
 @dataclass
@@ -410,29 +415,34 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
     the better match kept (measured on the honest benchmark: a
     lateral view of the phantom at 45 deg, its guess 24 deg and 44 mm off, matched the skin at 15 deg
     flexion 122 mm away with 53 % of the points; the global starts found 86 %, 4 mm from the truth).
-    Raises :class:`KneeInputError` when the cloud is too small."""
-    pts = _checked_cloud(points)
-    pts = voxel_downsample(pts, VOXEL_MM)
+    A cloud of more than :data:`ROUGH_MAX_POINTS` (after 4 mm voxels) is searched with a subsample of that
+    many; the match it finds is scored on all of them. Raises :class:`KneeInputError` when the cloud is too small."""
+    every = voxel_downsample(_checked_cloud(points), VOXEL_MM)
+    pts = every
+    if len(every) > ROUGH_MAX_POINTS:
+        pts = every[np.sort(np.random.default_rng(0).choice(len(every), ROUGH_MAX_POINTS, replace=False))]
     lo, hi = skin.mech.assembly_range
     cands = sorted({float(np.clip(math.radians(d), lo, hi)) for d in flexions_deg})
+
+    def scored(T, a, points) -> RoughRegistration:
+        d, _ = skin.samples(a)[2].query(transform_points(T, points))
+        trimmed = np.sort(d)[: max(1, int(0.9 * d.size))]
+        return RoughRegistration(T, a, float(np.mean(d < 5.0)), float(np.sqrt(np.mean(trimmed ** 2))))
 
     def search(starts) -> RoughRegistration:
         best = None
         for a in cands:
-            samples, normals, tree = skin.samples(a)
+            samples, normals, _ = skin.samples(a)
             for T0 in starts(samples, normals):
                 for schedule in reaches_mm:
                     T = T0
                     for reach in schedule:
                         T, _, _ = icp(pts, samples, init=T, max_distance=reach, iterations=30,
                                       target_normals=normals)
-                    d, _ = tree.query(transform_points(T, pts))
-                    inl = float(np.mean(d < 5.0))
-                    trimmed = np.sort(d)[: max(1, int(0.9 * d.size))]
-                    rms = float(np.sqrt(np.mean(trimmed ** 2)))
-                    if best is None or (inl, -rms) > (best.inliers, -best.rms):
-                        best = RoughRegistration(T, a, inl, rms)
-        return best
+                    match = scored(T, a, pts)
+                    if best is None or (match.inliers, -match.rms) > (best.inliers, -best.rms):
+                        best = match
+        return best if pts is every else scored(best.T_model_world, best.flexion, every)
 
     def global_starts(samples, normals):
         return [global_register(pts, samples, voxel=6.0, target_normals=normals, seed=k)[0] for k in range(2)]

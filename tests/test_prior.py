@@ -409,6 +409,39 @@ def test_rough_registration_tries_the_global_starts_where_the_guess_led_it_astra
     assert rot < 10.0 and shift < 15.0, (rot, shift)
 
 
+def test_rough_registration_searches_a_large_cloud_with_a_subsample(volunteer, scene, monkeypatch):
+    """A cloud over the search's point budget (here lowered to a third of the scene's thinned points, as a
+    frame with a table is over the default) is searched with a subsample of that many: the
+    match lands near the truth as the whole cloud's does, and the share of points on the skin it reports is
+    that of all the thinned points at the match (counted here independently), not the subsample's."""
+    from scipy.spatial.transform import Rotation
+
+    import knee.models.prior as P
+    from knee.foundations.pointclouds import voxel_downsample
+
+    ph, _, pts = scene
+    sk = SkinModel(volunteer, ph)
+    guess = np.eye(4)
+    guess[:3, :3] = Rotation.from_rotvec(math.radians(20.0) * np.array([0.6, 0.0, 0.8])).as_matrix()
+    guess[:3, 3] = [20.0, -25.0, 0.0]
+    whole = P.register_roughly(sk, pts, guess)
+    every = voxel_downsample(pts, P.VOXEL_MM)
+    assert len(every) > 3000
+    searched = []
+    original = P.icp
+    monkeypatch.setattr(P, "icp", lambda src, *a, **k: searched.append(len(src)) or original(src, *a, **k))
+    monkeypatch.setattr(P, "ROUGH_MAX_POINTS", len(every) // 3)
+    r = P.register_roughly(sk, pts, guess)
+    assert set(searched) == {len(every) // 3}
+    d, _ = sk.samples(r.flexion)[2].query(transform_points(r.T_model_world, every))
+    assert r.inliers == pytest.approx(float(np.mean(d < 5.0)))
+    assert r.flexion == whole.flexion and r.inliers > whole.inliers - 0.05
+    T = r.T_model_world
+    rot = math.degrees(math.acos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+    shift = float(np.linalg.norm(transform_points(T, pts) - pts, axis=1).mean())
+    assert rot < 10.0 and shift < 15.0, (rot, shift)
+
+
 def test_the_fem_posed_skin_is_the_fems_skin(volunteer):
     """The flexion estimate's knee band posed by the association model (``skin_model(..., "fem")``) is
     where the FEM puts the skin: at an angle between the sweep's, a separate FEM solve there (8 increments
