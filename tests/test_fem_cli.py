@@ -49,6 +49,7 @@ def test_knee_fem_short_run_prints_errors_and_records(tmp_path):
     (["--depth", "missing.png", "--intrinsics", "600,600,640"], "--intrinsics must be four"),
     (["--cloud", "missing.ply"], "no such point-cloud file"),
     (["--intrinsics", "1,2,3,4"], "go with --depth or --cloud"),
+    (["--keep-flying"], "--keep-flying goes with --depth or --cloud"),
     (["--max-steps", "0"], "--max-steps must be 1-100000"),
     (["--bone-stall", "-1"], "--bone-stall must be a non-negative"),
 ])

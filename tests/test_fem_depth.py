@@ -4,6 +4,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 import trimesh
+from scipy import ndimage
 
 from knee.foundations.conventions import cardan_to_matrix
 from knee.foundations.errors import KneeInputError
@@ -13,6 +14,7 @@ from knee.foundations.pointclouds import (
     icp_held,
     load_depth_image,
     load_point_cloud,
+    mixed_pixels,
 )
 from knee.foundations.surfaces import SurfaceQuery
 from knee.models.fem.depth import Camera, DepthNoise, render_depth
@@ -84,7 +86,8 @@ def test_depth_image_and_point_cloud_files(tmp_path, knee_like):
     pts = load_depth_image(png, cam.K, cam.T_world_cam)
     assert np.abs(SurfaceQuery.of(knee_like).signed_distance(pts)).max() < 1.0  # mm rounding
     np.save(tmp_path / "depth.npy", d)
-    assert len(load_depth_image(tmp_path / "depth.npy", cam.K)) == (d > 0).sum()
+    assert len(load_depth_image(tmp_path / "depth.npy", cam.K, drop_mixed=False)) == (d > 0).sum()
+    assert len(load_depth_image(tmp_path / "depth.npy", cam.K)) == (d > 0).sum() - mixed_pixels(d, cam.K).sum()
     ply = tmp_path / "cloud.ply"
     o3d.io.write_point_cloud(str(ply), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)))
     np.testing.assert_allclose(load_point_cloud(ply), pts, atol=1e-3)
@@ -279,3 +282,81 @@ def test_dominant_planes_are_a_tables_not_a_legs():
     assert on[:len(leg)].mean() < 0.02  # the cylinder's points within 5 mm of the table's plane
     assert not dominant_planes(leg).any()
     assert dominant_planes(table).all() and not dominant_planes(table[:2]).any()  # a plane alone; too few points
+
+
+@pytest.fixture(scope="module")
+def flying_scene(knee_like):
+    """The knee seen by a depth camera with its noise and dropout, a wall 300 mm behind it, and flying pixels:
+    blends of the two (a depth drawn evenly between them) on half the pixels of a band two pixels wide on
+    either side of the knee's outline. (camera, the clean render, the noisy knee alone, the image, the
+    flying pixels (those over 2 mm from both surfaces), the knee's silhouette)."""
+    cam = _camera()
+    clean = render_depth(knee_like.vertices, knee_like.faces, cam)
+    rng = np.random.default_rng(4)
+    knee = DepthNoise().apply(clean, rng)
+    on = knee > 0
+    leg = ndimage.binary_closing(on, np.ones((3, 3), bool), iterations=2) & ndimage.binary_fill_holes(on)
+    ring = ndimage.binary_dilation(leg, iterations=2) & ~ndimage.binary_erosion(leg, iterations=2)
+    front = ndimage.grey_dilation(np.where(on, knee, 0.0), size=7)  # the knee's depth near each ring pixel
+    blend = ring & (rng.random(knee.shape) < 0.5) & (front > 0)
+    d = np.where(leg, knee, 700.0)
+    d[blend] = front[blend] + rng.random(blend.sum()) * (700.0 - front[blend])
+    flying = blend & (np.abs(d - front) > 2.0) & (np.abs(d - 700.0) > 2.0)
+    assert flying.sum() > 1000
+    return cam, clean, knee, d, flying, leg
+
+
+def test_mixed_pixels_are_the_blends_at_depth_edges_not_a_steep_surface_noise_or_holes(flying_scene):
+    """A depth camera's flying pixels, blends of the knee in front and a wall 300 mm behind it in a band two
+    pixels wide around the knee's outline, are found (all but a few) and left out, so hardly a point lies
+    between the knee and the wall; the knee's own pixels stay, its outline's too (next to the blends, but
+    continued by the knee's own), and so does its own occluding edge (the bump over the capsule), even with
+    the noise model's depth noise and dropout holes, and so do those of a plane seen 80 deg
+    from face-on, whose neighbouring pixels step tan 80 deg = 5.7 pixel footprints apart (a steep surface,
+    not an edge)."""
+    cam, clean, knee, d, flying, leg = flying_scene
+    on = knee > 0
+    own = ndimage.binary_dilation(mixed_pixels(clean, cam.K), iterations=2)  # the bump's occluding edge
+    assert own.sum() < 0.01 * (clean > 0).sum()
+    m = mixed_pixels(d, cam.K)
+    assert m[flying].mean() > 0.95
+    assert not (m & ndimage.binary_erosion(leg, iterations=4) & on & ~own).any()  # the knee away from edges
+    outline = on & leg & ~flying & ~ndimage.binary_erosion(leg, iterations=3)
+    # its outline, beside the blends (inside the band, half its pixels blends): mostly kept, where leaving
+    # out every pixel at a step (no support asked) would lose nearly all of it
+    assert outline.sum() > 2000 and m[outline].mean() < 0.2
+    assert mixed_pixels(d, cam.K, support=9)[outline].mean() > 0.8
+    assert not m[ndimage.binary_erosion(~leg, iterations=4)].any()  # the wall
+    # nothing between the knee and the wall in what the loader gives
+    pts = backproject(d, cam.K, drop_mixed=True)
+    kept_between = (pts[:, 2] > knee[on].max() + 5.0) & (pts[:, 2] < 695.0)
+    assert kept_between.sum() < 0.05 * flying.sum()
+    assert len(backproject(d, cam.K)) == int((d > 0).sum())  # kept where not asked
+    # the knee alone, with its noise and holes: nothing but its own occluding edge and, where the noise meets
+    # the outline's grazing rays, a few of its outermost pixels
+    alone = mixed_pixels(knee, cam.K) & ~own
+    assert alone.sum() < 20 and not (alone & ndimage.binary_erosion(clean > 0, iterations=2)).any()
+    # a plane turned 80 deg from the camera's axis: a steep surface, every pixel kept
+    plane = trimesh.creation.box(extents=[400, 400, 1]).apply_transform(
+        trimesh.transformations.rotation_matrix(np.radians(80.0), [0, 1, 0]))
+    pc = Camera.looking_at([0, 0, 400.0], [0, 0, 0], up=[0, 1, 0], width=160, height=120)
+    dp = render_depth(plane.vertices, plane.faces, pc)
+    inside = ndimage.binary_erosion(dp > 0, iterations=2)
+    assert inside.sum() > 100 and not mixed_pixels(dp, pc.K)[inside].any()
+
+
+def test_sparse_points_are_a_clouds_flying_pixels_whatever_its_density_or_unit(flying_scene):
+    """The same flying pixels in a cloud (no pixel grid to tell neighbours): nearly all are found by their
+    distance to their 8th nearest neighbour, under 1 % of the knee's and the wall's points with them; the
+    cloud in metres or thinned to 3 mm voxels is judged against itself alike (its knee kept)."""
+    from knee.foundations.pointclouds import sparse_points, voxel_downsample
+
+    cam, clean, knee, d, flying, leg = flying_scene
+    pts = backproject(d, cam.K)
+    fly = flying[d > 0]  # back-projection keeps the seen pixels in row order
+    s = sparse_points(pts)
+    assert s[fly].mean() > 0.97
+    assert s[~fly & ~(ndimage.binary_dilation(flying, iterations=2)[d > 0])].mean() < 0.01
+    np.testing.assert_array_equal(sparse_points(pts / 1000.0), s)
+    thin = voxel_downsample(backproject(knee, cam.K), 3.0)
+    assert sparse_points(thin).mean() < 0.01

@@ -15,7 +15,7 @@
     knee compare MODEL [--truth MODEL] [--flexion 30:120:15] [--cameras oblique,frontal,lateral] [--out DIR]
     knee compare CASE_SET [--methods links,kinematics,init,paper] [--only ID,...] [--out DIR]
     knee fem MODEL [--flexion 90] [--truth MODEL] [--camera oblique|frontal|lateral|AZ,EL,DIST] [--rrd FILE]
-             [--cloud FILE | --depth FILE --intrinsics fx,fy,cx,cy [--depth-scale 1]] [--pose FILE]
+             [--cloud FILE | --depth FILE --intrinsics fx,fy,cx,cy [--depth-scale 1]] [--keep-flying] [--pose FILE]
 
 Angles in degrees, lengths in mm. Exit codes: 0 success; 2 bad input or an output that cannot be written
 (one line ``knee: error: ...``); 3 a numerical failure on good input (the mechanism does not assemble, a
@@ -186,6 +186,9 @@ def build_parser() -> argparse.ArgumentParser:
                                          "coordinates, as OpenCV and librealsense give them)")
     fe.add_argument("--depth-scale", type=float, default=1.0, help="depth units to mm (1)")
     fe.add_argument("--cloud-scale", type=float, default=1.0, help="the cloud's units to mm (1; 1000 for metres)")
+    fe.add_argument("--keep-flying", action="store_true",
+                    help="keep the measured points a depth camera returns at depth edges (left out by default: "
+                         "flying pixels, blends of the leg and what lies behind it)")
     fe.add_argument("--pose", help="phantom: text file with the 4x4 camera-to-model transform (default identity)")
     fe.add_argument("--max-steps", type=int, help="phantom: step limit (400)")
     fe.add_argument("--bone-stall", type=float, metavar="DEG",

@@ -22,11 +22,12 @@ from knee.foundations.errors import KneeInputError
 
 
 def backproject(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray | None = None,
-                depth_scale: float = 1.0, max_depth: float | None = None) -> np.ndarray:
+                depth_scale: float = 1.0, max_depth: float | None = None, drop_mixed: bool = False) -> np.ndarray:
     """Points (P, 3) in mm, in the world (or the camera frame without a pose), from a depth image.
 
     ``depth_scale`` converts the image's units to mm (e.g. 1.0 for a 16-bit image in mm, 1000 for one in
-    metres). Pixels with depth 0 (or beyond ``max_depth`` mm) are skipped.
+    metres). Pixels with depth 0 (or beyond ``max_depth`` mm) are skipped, and with ``drop_mixed`` those on
+    a depth edge (:func:`mixed_pixels`: a measured image's flying pixels).
     """
     d = np.asarray(depth, dtype=float) * depth_scale
     if d.ndim != 2:
@@ -34,7 +35,10 @@ def backproject(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray | None
     K = np.asarray(K, dtype=float)
     if K.shape != (3, 3) or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise KneeInputError("intrinsics must be a 3x3 matrix with positive focal lengths")
-    v, u = np.nonzero((d > 0) & (np.isfinite(d)) & ((d <= max_depth) if max_depth else True))
+    keep = (d > 0) & (np.isfinite(d)) & ((d <= max_depth) if max_depth else True)
+    if drop_mixed:
+        keep &= ~mixed_pixels(d, K)
+    v, u = np.nonzero(keep)
     z = d[v, u]
     x = (u - K[0, 2]) / K[0, 0] * z
     y = (v - K[1, 2]) / K[1, 1] * z
@@ -43,6 +47,71 @@ def backproject(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray | None
         T = np.asarray(T_world_cam, float)
         p = p @ T[:3, :3].T + T[:3, 3]
     return p
+
+
+#: A depth edge: a pixel whose depth differs from a seen neighbour's by more than this many pixel footprints
+#: (the pixel's lateral size at its depth, depth / focal length) (:func:`mixed_pixels`). A continuous
+#: surface steps this far between neighbouring pixels only where it is seen within 2.3 deg of edge-on
+#: (atan(1 / 25)); the depth noise of a camera at a knee's distance (about 1 mm at 400 mm, a pixel footprint
+#: of 0.4 mm) stays well under it.
+EDGE_FOOTPRINTS = 25.0
+#: A pixel at a depth edge is a surface's own (kept) where at least this many of its eight neighbours
+#: continue it (step less than :data:`EDGE_FOOTPRINTS`): along a straight outline a surface pixel has five
+#: such neighbours, at a corner three; a flying pixel, its depth a random blend, hardly any.
+EDGE_SUPPORT = 3
+
+
+def mixed_pixels(depth: np.ndarray, K: np.ndarray, footprints: float = EDGE_FOOTPRINTS,
+                 support: int = EDGE_SUPPORT) -> np.ndarray:
+    """Which pixels (height, width) bool of a depth image are flying pixels: seen, stepping from one of
+    their eight seen neighbours by more than ``footprints`` pixel footprints (depth / focal length) of the
+    nearer, and continued by fewer than ``support`` of them. A depth camera returns such pixels along an
+    outline, their depth a blend of the surface in front and the one behind: points strewn along the rays
+    behind a leg's outline, on no surface. The pixels of the surfaces on either side of the edge are kept
+    (their own neighbours continue them); unseen neighbours (dropout holes) are neither steps nor support.
+    Measured on the honest benchmark's seed 0 with blends on half of a two-pixel band around each outline
+    (12 of its images): 97.7 % of the blends found and 0.16 % of the leg's pixels lost, against 98.9 % and
+    1.4 % when every pixel at a step is left out (the leg's outline with the blends)."""
+    d = np.asarray(depth, dtype=float)
+    if d.ndim != 2:
+        raise KneeInputError(f"a depth image must be 2-D, got shape {d.shape}")
+    K = np.asarray(K, dtype=float)
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    seen = np.isfinite(d) & (d > 0)
+    z = np.where(seen, d, np.nan)
+    padded = np.pad(z, 1, constant_values=np.nan)
+    h, w = d.shape
+    worst = np.zeros_like(d)
+    smooth = np.zeros(d.shape, np.int8)
+    for dv in (-1, 0, 1):  # the eight neighbours: eight whole-image shifts
+        for du in (-1, 0, 1):
+            if dv or du:
+                other = padded[1 + dv:1 + dv + h, 1 + du:1 + du + w]
+                step = np.abs(other - z) / (np.fmin(other, z) / f)  # NaN where either is unseen
+                worst = np.fmax(worst, np.where(np.isnan(step), 0.0, step))
+                smooth += step <= footprints
+    return seen & (worst > footprints) & (smooth < support)
+
+
+#: A point of a cloud is taken for a flying pixel (:func:`sparse_points`) where its 8th nearest neighbour is
+#: more than this many times as far as the cloud's median point's: a depth camera's surface points lie at
+#: about a pixel's footprint from each other (stretched at most a few times where the surface is seen nearly
+#: edge-on, or lies two or three times as deep), the blends at depth edges strewn along their rays, far
+#: from each other.
+SPARSE_FACTOR = 6.0
+
+
+def sparse_points(points, neighbours: int = 8, factor: float = SPARSE_FACTOR) -> np.ndarray:
+    """Which points (P,) bool of a depth camera's cloud lie far from the others: the distance to their
+    ``neighbours``-th nearest neighbour over ``factor`` times the median point's. A cloud's flying pixels
+    (:func:`mixed_pixels` finds them in a depth image, where the pixels' neighbours are known); a cloud of
+    any density or unit is judged against itself."""
+    p = np.asarray(points, float)
+    if len(p) <= neighbours:
+        return np.zeros(len(p), bool)
+    d, _ = cKDTree(p).query(p, k=neighbours + 1)
+    far = d[:, -1]
+    return far > factor * np.median(far)
 
 
 def read_depth_image(path) -> np.ndarray:
@@ -76,11 +145,12 @@ def read_depth_image(path) -> np.ndarray:
     return depth
 
 
-def load_depth_image(path, K, T_world_cam=None, depth_scale: float = 1.0) -> np.ndarray:
+def load_depth_image(path, K, T_world_cam=None, depth_scale: float = 1.0, drop_mixed: bool = True) -> np.ndarray:
     """Points (P, 3) from a depth image file (16-bit PNG or a .npy array) with intrinsics ``K`` (3, 3)
     (pixels): in mm after ``depth_scale`` (image units to mm), in the camera's frame, or in the world
-    with the camera pose ``T_world_cam`` (4, 4)."""
-    return backproject(read_depth_image(path), K, T_world_cam, depth_scale)
+    with the camera pose ``T_world_cam`` (4, 4); a measured image's flying pixels left out unless
+    ``drop_mixed`` is False (:func:`mixed_pixels`)."""
+    return backproject(read_depth_image(path), K, T_world_cam, depth_scale, drop_mixed=drop_mixed)
 
 
 #: The point-cloud files :func:`load_point_cloud` reads (open3d's readers; .xyz and .pts: x y z per line).

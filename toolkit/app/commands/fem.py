@@ -16,7 +16,7 @@ from knee.app.console import ProgressBar, check_max_steps, check_new, error, num
 from knee.app.experiments.cases import case_points, case_truth, run_standard_case
 from knee.app.views.fem import FemRecorder
 from knee.foundations.errors import EXIT_NUMERICAL, DivergenceError, KneeInputError
-from knee.foundations.pointclouds import load_depth_image, load_point_cloud
+from knee.foundations.pointclouds import load_depth_image, load_point_cloud, sparse_points
 from knee.models.fem.depth import DepthNoise, camera_from_spec
 from knee.models.fem.methods import bone_phase_note
 from knee.models.fem.scene import FemSettings, build_association_model
@@ -34,11 +34,15 @@ def measured_points(args):
             pose = np.loadtxt(args.pose, dtype=float).reshape(4, 4)
         except (OSError, ValueError):
             raise KneeInputError(f"--pose {args.pose}: not a readable 4x4 matrix (16 numbers)") from None
+    if args.keep_flying and not (args.depth or args.cloud):
+        raise KneeInputError("--keep-flying goes with --depth or --cloud (the measured points' flying pixels)")
     if args.cloud:
         if not (math.isfinite(args.cloud_scale) and args.cloud_scale > 0):
             raise KneeInputError(f"--cloud-scale must be a positive number, got {args.cloud_scale}")
-        pts = fem_subject.checked_span(load_point_cloud(args.cloud) * args.cloud_scale, "--cloud-scale",
-                                       args.cloud_scale)
+        pts = load_point_cloud(args.cloud)
+        if not args.keep_flying:
+            pts = pts[~sparse_points(pts)]
+        pts = fem_subject.checked_span(pts * args.cloud_scale, "--cloud-scale", args.cloud_scale)
         return pts if pose is None else pts @ pose[:3, :3].T + pose[:3, 3]
     if args.depth:
         if not args.intrinsics:
@@ -47,7 +51,8 @@ def measured_points(args):
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
         if not (args.depth_scale > 0 and math.isfinite(args.depth_scale)):
             raise KneeInputError(f"--depth-scale must be a positive number, got {args.depth_scale}")
-        return fem_subject.checked_span(load_depth_image(args.depth, K, pose, args.depth_scale), "--depth-scale",
+        return fem_subject.checked_span(load_depth_image(args.depth, K, pose, args.depth_scale,
+                                                                 drop_mixed=not args.keep_flying), "--depth-scale",
                                         args.depth_scale)
     if args.intrinsics or args.pose:
         raise KneeInputError("--intrinsics and --pose go with --depth or --cloud")

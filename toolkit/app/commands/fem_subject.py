@@ -45,7 +45,7 @@ from knee.foundations.conventions import JOINT_COORDINATES, invert_poses, pose_t
 from knee.foundations.errors import KneeInputError  # noqa: E402
 from knee.foundations.files import staged_folder  # noqa: E402
 from knee.foundations.imaging import write_surface  # noqa: E402
-from knee.foundations.pointclouds import backproject, load_point_cloud, read_depth_image  # noqa: E402
+from knee.foundations.pointclouds import backproject, load_point_cloud, mixed_pixels, read_depth_image, sparse_points  # noqa: E402
 from knee.models.fem.depth import Camera, render_depth  # noqa: E402
 from knee.models.fem.methods import reconstruct_in_camera  # noqa: E402
 from knee.models.fem.scene import build_knee_model  # noqa: E402
@@ -91,7 +91,8 @@ def checked_span(points, flag: str, scale: float) -> np.ndarray:
 
 
 def _points(args):
-    """(points (P, 3) camera frame, depth image or None, K or None)."""
+    """(points (P, 3) camera frame, depth image or None, K or None, how many flying pixels were left out
+    (a depth image's on depth edges, a cloud's far from the others; none with ``--keep-flying``))."""
     if args.cloud and args.depth:
         raise KneeInputError("give one measured input: --cloud FILE or --depth FILE, not both")
     if not (args.cloud or args.depth):
@@ -102,8 +103,10 @@ def _points(args):
             raise KneeInputError("--intrinsics goes with --depth, not --cloud")
         if not (math.isfinite(args.cloud_scale) and args.cloud_scale > 0):
             raise KneeInputError(f"--cloud-scale must be a positive number, got {args.cloud_scale}")
-        pts = checked_span(load_point_cloud(args.cloud) * args.cloud_scale, "--cloud-scale", args.cloud_scale)
-        return pts, None, None
+        pts = load_point_cloud(args.cloud)
+        flying = np.zeros(len(pts), bool) if args.keep_flying else sparse_points(pts)
+        pts = checked_span(pts[~flying] * args.cloud_scale, "--cloud-scale", args.cloud_scale)
+        return pts, None, None, int(flying.sum())
     if not args.intrinsics:
         raise KneeInputError("--depth needs --intrinsics fx,fy,cx,cy (pixels)")
     fx, fy, cx, cy = numbers(args.intrinsics, 4, "--intrinsics")
@@ -117,8 +120,10 @@ def _points(args):
         raise KneeInputError(f"--depth {args.depth} is {w}x{h} pixels but --intrinsics puts the principal point at "
                              f"({cx:g}, {cy:g}), outside it: the intrinsics do not belong to this image")
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    pts = checked_span(backproject(depth, K, None, args.depth_scale), "--depth-scale", args.depth_scale)
-    return pts, depth * args.depth_scale, K
+    depth = depth * args.depth_scale
+    mixed = np.zeros(depth.shape, bool) if args.keep_flying else mixed_pixels(depth, K)
+    pts = checked_span(backproject(np.where(mixed, 0.0, depth), K), "--depth-scale", args.depth_scale)
+    return pts, depth, K, int(mixed.sum())
 
 
 def run(args) -> int:
@@ -131,7 +136,7 @@ def run(args) -> int:
     out = out_dir(args.out, args.force, inputs=inputs)
     init_pose = _read_pose(args.initial_pose) if args.initial_pose else None
     method = args.method or "links"
-    points_cam, depth, K = _points(args)
+    points_cam, depth, K, flying = _points(args)
     subject = load_subject(subject_dir)
     # a left knee is read mirrored into a right one (README, "Subject folders"): the camera's points and the
     # initial pose are mirrored with it (x negated in the camera's frame and in the CT's), and the bones'
@@ -199,7 +204,8 @@ def run(args) -> int:
         "fit": {"registration_inliers_5mm": rough.inliers, "registration_rms_mm": rough.rms,
                 "flexion_estimate_rms_mm": None if recon.estimate is None else recon.estimate.rms,
                 "flexion_estimate_inliers": None if recon.estimate is None else recon.estimate.inliers,
-                "steps": recon.steps, "converged": recon.converged},
+                "steps": recon.steps, "converged": recon.converged,
+                "flying_pixels_left_out": flying},
         "initial_pose_off": initial_off,
         "seconds": {"model": built, "registration_and_method": seconds},
         "warnings": notes,

@@ -491,7 +491,7 @@ def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T
     depth = np.load(folder / case["depth"])
     fx, fy, cx, cy = case["intrinsics"]
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    pts = backproject(depth.astype(float), K)
+    pts = backproject(depth.astype(float), K, drop_mixed=True)  # as a measured image's
     init = np.loadtxt(folder / case["initial_pose"]).reshape(4, 4)
     model = build_knee_model(anatomy, prior=prior)
     if method == "paper":  # the paper's method at its best reading (the README lists the choices)

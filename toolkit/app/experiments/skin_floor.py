@@ -73,7 +73,7 @@ class SkinFloorRow:
 def _cloud(folder: Path, case: dict) -> np.ndarray:
     fx, fy, cx, cy = case["intrinsics"]
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    return voxel_downsample(backproject(np.load(folder / case["depth"]).astype(float), K), VOXEL_MM)
+    return voxel_downsample(backproject(np.load(folder / case["depth"]).astype(float), K, drop_mixed=True), VOXEL_MM)
 
 
 def _register(points, clean, T_cam_bone) -> np.ndarray:
