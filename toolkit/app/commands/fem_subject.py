@@ -91,8 +91,8 @@ def checked_span(points, flag: str, scale: float) -> np.ndarray:
 
 
 def _points(args):
-    """(points (P, 3) camera frame, depth image or None, K or None, how many flying pixels were left out
-    (a depth image's on depth edges, a cloud's far from the others; none with ``--keep-flying``))."""
+    """(points (P, 3) camera frame, depth image or None, K or None, the flying pixels left out (F, 3): a
+    depth image's on depth edges, a cloud's far from the others; none with ``--keep-flying``)."""
     if args.cloud and args.depth:
         raise KneeInputError("give one measured input: --cloud FILE or --depth FILE, not both")
     if not (args.cloud or args.depth):
@@ -103,10 +103,9 @@ def _points(args):
             raise KneeInputError("--intrinsics goes with --depth, not --cloud")
         if not (math.isfinite(args.cloud_scale) and args.cloud_scale > 0):
             raise KneeInputError(f"--cloud-scale must be a positive number, got {args.cloud_scale}")
-        pts = load_point_cloud(args.cloud)
+        pts = load_point_cloud(args.cloud) * args.cloud_scale
         flying = np.zeros(len(pts), bool) if args.keep_flying else sparse_points(pts)
-        pts = checked_span(pts[~flying] * args.cloud_scale, "--cloud-scale", args.cloud_scale)
-        return pts, None, None, int(flying.sum())
+        return checked_span(pts[~flying], "--cloud-scale", args.cloud_scale), None, None, pts[flying]
     if not args.intrinsics:
         raise KneeInputError("--depth needs --intrinsics fx,fy,cx,cy (pixels)")
     fx, fy, cx, cy = numbers(args.intrinsics, 4, "--intrinsics")
@@ -123,7 +122,7 @@ def _points(args):
     depth = depth * args.depth_scale
     mixed = np.zeros(depth.shape, bool) if args.keep_flying else mixed_pixels(depth, K)
     pts = checked_span(backproject(np.where(mixed, 0.0, depth), K), "--depth-scale", args.depth_scale)
-    return pts, depth, K, int(mixed.sum())
+    return pts, depth, K, backproject(np.where(mixed, depth, 0.0), K)
 
 
 def run(args) -> int:
@@ -205,7 +204,7 @@ def run(args) -> int:
                 "flexion_estimate_rms_mm": None if recon.estimate is None else recon.estimate.rms,
                 "flexion_estimate_inliers": None if recon.estimate is None else recon.estimate.inliers,
                 "steps": recon.steps, "converged": recon.converged,
-                "flying_pixels_left_out": flying},
+                "flying_pixels_left_out": len(flying)},
         "initial_pose_off": initial_off,
         "seconds": {"model": built, "registration_and_method": seconds},
         "warnings": notes,
@@ -218,7 +217,7 @@ def run(args) -> int:
         faces = np.asarray(model.skin_faces)
         skin = (transform_points(S @ T_cam_world, recon.locate("femur", model.skin_vertices)),
                 faces[:, ::-1] if subject.side == "left" else faces)
-    _write_outputs(out, meshes, skin, points_cam, result, depth, K)
+    _write_outputs(out, meshes, skin, points_cam, result, depth, K, flying)
     print(f"{subject.name}: flexion {result['flexion_deg']:.1f} deg ({recon.method}), {recon.steps} steps in "
           f"{seconds:.1f} s; registration: {100 * rough.inliers:.0f} % of the points within 5 mm of the skin")
     for w in notes:
@@ -228,16 +227,16 @@ def run(args) -> int:
     return 0
 
 
-def _write_outputs(out: Path, meshes, skin, points_cam, result, depth, K) -> None:
+def _write_outputs(out: Path, meshes, skin, points_cam, result, depth, K, flying=None) -> None:
     """Every output into a temporary folder beside OUT, then renamed into place: a run that fails leaves
     no half-written results."""
     with staged_folder(out) as tmp:
-        _write_into(tmp, meshes, skin, points_cam, result, depth, K)
+        _write_into(tmp, meshes, skin, points_cam, result, depth, K, flying)
 
 
-def _write_into(tmp: Path, meshes, skin, points_cam, result, depth, K) -> None:
+def _write_into(tmp: Path, meshes, skin, points_cam, result, depth, K, flying=None) -> None:
     """``meshes``: the bones posed in the camera's frame; ``skin``: the FEM's skin there (vertices, faces)
-    or None."""
+    or None; ``flying``: the flying pixels left out (F, 3), shown apart."""
     for b, m in meshes.items():
         write_surface(tmp / f"{b}.stl", m, "LPS")
     (tmp / "result.json").write_text(json.dumps(result, indent=1), encoding="utf-8")
@@ -255,6 +254,9 @@ def _write_into(tmp: Path, meshes, skin, points_cam, result, depth, K) -> None:
                                                 collapse_panels=True))
     rec.log("camera/points", rr.Points3D(points_cam[:: max(1, len(points_cam) // 60000)].astype(np.float32),
                                          colors=[(90, 170, 255)], radii=[0.6]), static=True)
+    if flying is not None and len(flying):
+        rec.log("camera/flying_pixels", rr.Points3D(flying[:: max(1, len(flying) // 20000)].astype(np.float32),
+                                                    colors=[(255, 120, 40)], radii=[0.6]), static=True)
     for b, m in meshes.items():
         R.log_mesh(rec, f"camera/{b}", m, R.BONE_COLOURS[b])
     if skin is not None:
