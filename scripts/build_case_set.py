@@ -3,6 +3,7 @@ from a seed, then run it with ``knee compare CASE_SET --out OUT``.
 
     .venv/bin/python scripts/build_case_set.py --out cases [--seed 0] [--data ../shared/data]
         [--anatomies phantom,visible-human-male] [--families mechanism+deviation,measured] [--patella]
+        [--flying 0.5]
 
 Without the data folder, only the phantom's mechanism cases are built. The cases, the truth and what the
 methods are given: :mod:`knee.app.experiments.case_set`. About 2-5 min on 2 cores (the truth skins).
@@ -25,7 +26,13 @@ def main() -> int:
     ap.add_argument("--families", default="mechanism+deviation,measured")
     ap.add_argument("--patella", action="store_true",
                     help="the truth's tissue holds the subject's patella, moved by the truth mechanism's PF motion")
+    ap.add_argument("--flying", type=float, default=0.0,
+                    help="share (0-1) of the pixels within two of each depth edge that return a blend of the "
+                         "surfaces on either side, as a depth camera's flying pixels (0)")
     args = ap.parse_args()
+    if not 0.0 <= args.flying <= 1.0:
+        print(f"build_case_set: --flying must be a share from 0 to 1, got {args.flying}", file=sys.stderr)
+        return 2
     from knee.app.experiments.case_set import build_case_set
     from knee.app.console import say, take_terminations_as_interrupts
     from knee.foundations.errors import KneeError
@@ -42,7 +49,8 @@ def main() -> int:
             build_case_set(tmp, args.seed, args.data if Path(args.data).is_dir() else None,
                            tuple(a.strip() for a in args.anatomies.split(",") if a.strip()),
                            tuple(f.strip() for f in args.families.split(",") if f.strip()),
-                           progress=lambda s: say(f"[{time.perf_counter() - t0:5.0f} s] {s}"), patella=args.patella)
+                           progress=lambda s: say(f"[{time.perf_counter() - t0:5.0f} s] {s}"), patella=args.patella,
+                           flying=args.flying)
     except KneeError as e:
         print(f"build_case_set: error: {e}", file=sys.stderr)
         return 2

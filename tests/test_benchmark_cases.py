@@ -184,6 +184,18 @@ def test_case_set_cases_do_not_depend_on_the_subset_built(small_case_set, tmp_pa
     other = build_case_set(tmp_path / "other", seed=5, data=None, mechanism_flexions=(40.0,), mismatches=(1.0,))
     c = read_case_set(other)["case"][0]
     assert c["truth_tf"] != full[c["id"]]["truth_tf"]
+    # with flying pixels: the same cases, each image the same but for blends near its outline (a few % of
+    # its pixels), and the index says so
+    import tomllib
+
+    fly = build_case_set(tmp_path / "fly", seed=4, data=None, mechanism_flexions=(40.0,), mismatches=(1.0,),
+                         flying=0.5)
+    assert tomllib.loads((fly / "case-set.toml").read_text())["flying_pixels"] == 0.5
+    for c in read_case_set(fly)["case"]:
+        f = full[c["id"]]
+        assert c["truth_tf"] == f["truth_tf"]
+        a, b = np.load(fly / c["depth"]), np.load(small_case_set / f["depth"])
+        assert 0.002 < np.mean(a != b) < 0.05
 
 
 def test_case_set_runs_and_measures_against_its_truth(small_case_set):

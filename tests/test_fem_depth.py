@@ -360,3 +360,28 @@ def test_sparse_points_are_a_clouds_flying_pixels_whatever_its_density_or_unit(f
     np.testing.assert_array_equal(sparse_points(pts / 1000.0), s)
     thin = voxel_downsample(backproject(knee, cam.K), 3.0)
     assert sparse_points(thin).mean() < 0.01
+
+
+def test_the_noise_models_flying_pixels_blend_the_surfaces_at_each_outline(knee_like):
+    """``DepthNoise(flying=p)``: the noise and the dropout are those drawn without it; about p of the pixels
+    within two of the knee's outline or its own occluding edge (on either side) return a blend, a depth
+    between the nearer surface's and the one behind (300 mm behind where the render has none), none
+    elsewhere; the loader's filter finds most of those that are far from both surfaces."""
+    cam = _camera()
+    clean = render_depth(knee_like.vertices, knee_like.faces, cam)
+    plain = DepthNoise().apply(clean, np.random.default_rng(2))
+    d = DepthNoise(flying=0.5).apply(clean, np.random.default_rng(2))
+    blend = d != plain
+    on = clean > 0
+    outline = on & ~ndimage.binary_erosion(on, np.ones((3, 3), bool))  # next to an unseen pixel, diagonals too
+    steps = on & (ndimage.maximum_filter(clean, size=3) - ndimage.minimum_filter(np.where(on, clean, np.inf),
+                                                                                 size=3) > 20.0)
+    near_edges = ndimage.binary_dilation(outline | steps, iterations=2)  # the outline, the bump's edge
+    assert blend.sum() > 1000 and not blend[~near_edges].any()
+    assert 0.4 < blend[near_edges].mean() < 0.55
+    front = ndimage.minimum_filter(np.where(on, clean, np.inf), size=5)
+    assert np.all(d[blend] >= front[blend] - 1e-9) and np.all(d[blend] <= front[blend] + 300.0 + 1e-9)
+    assert np.median(d[blend & ~ndimage.binary_dilation(steps, iterations=4)] - front[blend & ~ndimage.binary_dilation(
+        steps, iterations=4)]) == pytest.approx(150.0, abs=15.0)  # even over the 300 mm behind the outline
+    far = blend & (d - front > 10.0) & (front + 300.0 - d > 10.0)
+    assert mixed_pixels(d, cam.K)[far].mean() > 0.9

@@ -257,7 +257,7 @@ def case_rng(seed: int, *keys: str) -> np.random.Generator:
 def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible-human-male"),
                    families=("mechanism+deviation", "measured"), progress: Callable[[str], None] | None = None,
                    mechanism_flexions=MECHANISM_FLEXIONS, measured_flexions=MEASURED_FLEXIONS,
-                   mismatches=MISMATCHES_MM, patella: bool = False) -> Path:
+                   mismatches=MISMATCHES_MM, patella: bool = False, flying: float = 0.0) -> Path:
     """Build the case set into ``out`` (a new folder; see the module docstring). ``data``: the folder
     holding ``visible-human-male/`` and ``lenhart2015/``; without it, the phantom's mechanism cases only.
     Each pose is seen from the paper's placement at every skin mismatch, and from the other placements at
@@ -265,7 +265,9 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
     (:func:`case_rng`), so a case is the same whichever subset of the set is built. ``patella``: the truth's
     tissue holds the subject's patella as a third bone, moved by the truth mechanism's PF motion at each
     case's flexion (:func:`truth_patella`); without, the skin over the knee's front follows the femur and
-    the tibia only, as the association model's does."""
+    the tibia only, as the association model's does. ``flying``: the share of the pixels near each depth
+    edge that return a blend of the surfaces on either side (a depth camera's flying pixels; the noise
+    model's ``flying``, :class:`knee.models.fem.depth.DepthNoise`); the rest of each image as without."""
     out = Path(out)
     say = progress or (lambda text: None)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -321,7 +323,7 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
                     cid = f"{pose_id}-{cname}"
                     rng = case_rng(seed, cid)
                     cam = default_camera(distance=dist, azimuth_deg=az, elevation_deg=el, target=centre)
-                    depth = DepthNoise().apply(render_depth(verts, skin.faces, cam), rng)
+                    depth = DepthNoise(flying=flying).apply(render_depth(verts, skin.faces, cam), rng)
                     folder = out / "cases" / cid
                     folder.mkdir(parents=True)
                     np.save(folder / "depth.npy", depth.astype(np.float32))
@@ -338,7 +340,7 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
                         "truth_tf": pose_to_joint(T_tibia).tolist(),
                         "T_camera_femur_ct": (T_cam_model @ invert_poses(Tf)).tolist(),
                         "T_camera_tibia_ct": (T_cam_model @ rel @ invert_poses(Tf)).tolist()})
-    _write_index(out, seed, entries, cases, patella)
+    _write_index(out, seed, entries, cases, patella, flying)
     return out
 
 
@@ -401,9 +403,9 @@ def truth_patella(subject, anatomy, T_ct_femur, truth: Mechanism):
     return patella, motion
 
 
-def _write_index(out: Path, seed: int, entries, cases, patella: bool = False) -> None:
+def _write_index(out: Path, seed: int, entries, cases, patella: bool = False, flying: float = 0.0) -> None:
     lines = [f'format = "{FORMAT}"', f"version = {VERSION}", f"seed = {int(seed)}",
-             f"truth_patella = {'true' if patella else 'false'}", ""]
+             f"truth_patella = {'true' if patella else 'false'}", f"flying_pixels = {float(flying)!r}", ""]
     for e in entries:
         lines += ["[[anatomy]]", f"name = {toml_string(e.name)}", f"subject = {toml_string(str(e.subject))}",
                   f"prior = {toml_string(str(e.prior))}", f"truth_mechanism = {toml_string(e.truth_mechanism)}",
