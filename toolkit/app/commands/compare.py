@@ -186,6 +186,8 @@ def run_cases(args) -> int:
     if n == 0:
         raise KneeInputError(f"--only {args.only!r} selects none of the {len(index['case'])} cases")
     truth = ", the truth moving the patella" if index.get("truth_patella") else ""
+    if index.get("flying_pixels"):
+        truth += f", flying pixels at {100 * float(index['flying_pixels']):g} % of each edge's band"
     say(f"knee compare: case set {args.model} (seed {index.get('seed')}{truth}), {n} cases x {len(methods)} methods")
     bar = ProgressBar()
     title = f"Case set {Path(args.model).name} (seed {index.get('seed')}{truth})"

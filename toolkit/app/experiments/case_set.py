@@ -18,7 +18,8 @@ What makes the cases honest:
   for what no model captures; with ``patella=True`` that tissue also holds the subject's patella, moved by
   the truth mechanism's PF motion (:func:`truth_patella`), which the association model does not model;
 - the depth image is rendered in the camera's own frame (RealSense-like noise, 1 mm at 400 mm, 2 %
-  dropout), from the paper's placement (350 mm, oblique: 35 deg toward lateral, raised 30 deg) and two
+  dropout; with ``flying``, blends of the surfaces at each depth edge, a depth camera's flying pixels; read
+  as ``knee fem`` reads a measured image, its flying pixels left out), from the paper's placement (350 mm, oblique: 35 deg toward lateral, raised 30 deg) and two
   others; the methods get the image, the intrinsics and a rough pose of the knee in the camera's frame,
   the truth turned 15-30 deg about the joint centre and moved 25-50 mm.
 
