@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
+from scipy import ndimage
 
 from knee.foundations.errors import KneeInputError
 
@@ -119,8 +120,6 @@ class DepthNoise:
         return d
 
     def _blend_edges(self, clean: np.ndarray, d: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        from scipy import ndimage
-
         seen = clean > 0
         size = 2 * self.flying_band + 1
         near = ndimage.minimum_filter(np.where(seen, clean, np.inf), size=3)
