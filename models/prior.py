@@ -382,7 +382,7 @@ ROUGH_REACHES_MM = ((60.0, 30.0, 15.0), (30.0, 15.0))
 #: benchmark's rough poses: 15-30 deg, 25-50 mm).
 ROUGH_GUESS_WITHIN = (30.0, 50.0)
 #: Most points (after the 4 mm voxels) a rough registration searches with; a larger cloud is searched with
-#: an even (seeded) subsample of this many, its best match then scored on all of them. A view of a knee
+#: a random (seeded) subsample of this many, its best match then scored on all of them. A view of a knee
 #: holds fewer (the honest benchmark's 300 depth images: 3,000-7,000); a frame that also shows a table or a
 #: wall holds many more (32,000 for a table under a leg), and each ICP's cost grows with them.
 ROUGH_MAX_POINTS = 10_000

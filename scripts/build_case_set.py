@@ -30,9 +30,6 @@ def main() -> int:
                     help="share (0-1) of the pixels within two of each depth edge that return a blend of the "
                          "surfaces on either side, as a depth camera's flying pixels (0)")
     args = ap.parse_args()
-    if not 0.0 <= args.flying <= 1.0:
-        print(f"build_case_set: --flying must be a share from 0 to 1, got {args.flying}", file=sys.stderr)
-        return 2
     from knee.app.experiments.case_set import build_case_set
     from knee.app.console import say, take_terminations_as_interrupts
     from knee.foundations.errors import KneeError

@@ -353,7 +353,9 @@ def test_case_set_build_refuses_bad_choices_before_writing(tmp_path):
                     ({"families": ("walking",)}, "unknown case family 'walking'"),
                     ({"families": ()}, "no case family given"),
                     ({"anatomies": ("visible-human-male",)}, "without the data folder"),
-                    ({"families": ("measured",)}, "without the data folder")):
+                    ({"families": ("measured",)}, "without the data folder"),
+                    ({"flying": 1.5}, "flying pixels' share must lie from 0 to 1, got 1.5"),
+                    ({"flying": float("nan")}, "flying pixels' share must lie from 0 to 1, got nan")):
         with pytest.raises(KneeInputError, match=msg):
             build_case_set(out, data=None, **{"seed": 0, **kw})
         assert not out.exists()

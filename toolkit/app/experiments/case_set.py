@@ -19,8 +19,8 @@ What makes the cases honest:
   the truth mechanism's PF motion (:func:`truth_patella`), which the association model does not model;
 - the depth image is rendered in the camera's own frame (RealSense-like noise, 1 mm at 400 mm, 2 %
   dropout; with ``flying``, blends of the surfaces at each depth edge, a depth camera's flying pixels; read
-  as ``knee fem`` reads a measured image, its flying pixels left out), from the paper's placement (350 mm, oblique: 35 deg toward lateral, raised 30 deg) and two
-  others; the methods get the image, the intrinsics and a rough pose of the knee in the camera's frame,
+  as ``knee fem`` reads a measured image, its flying pixels left out), from the paper's placement (350 mm,
+  oblique: 35 deg toward lateral, raised 30 deg) and two others; the methods get the image, the intrinsics and a rough pose of the knee in the camera's frame,
   the truth turned 15-30 deg about the joint centre and moved 25-50 mm.
 
 Folder::
@@ -273,6 +273,8 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
     say = progress or (lambda text: None)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise KneeInputError(f"the seed must be a non-negative integer, got {seed!r}")
+    if not 0.0 <= flying <= 1.0:  # also refuses NaN
+        raise KneeInputError(f"the flying pixels' share must lie from 0 to 1, got {flying!r}")
     for kind, given, known in (("anatomy", anatomies, ANATOMIES), ("case family", families, FAMILIES)):
         unknown = [g for g in given if g not in known]
         if unknown or not given:
