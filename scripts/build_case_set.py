@@ -3,7 +3,7 @@ from a seed, then run it with ``knee compare CASE_SET --out OUT``.
 
     .venv/bin/python scripts/build_case_set.py --out cases [--seed 0] [--data ../shared/data]
         [--anatomies phantom,visible-human-male] [--families mechanism+deviation,measured] [--patella]
-        [--flying 0.5]
+        [--flying 0.5] [--noise-correlation 3] [--hole-size 4] [--noise-sigma 1.6]
 
 Without the data folder, only the phantom's mechanism cases are built. The cases, the truth and what the
 methods are given: :mod:`knee.app.experiments.case_set`. About 2-5 min on 2 cores (the truth skins).
@@ -29,6 +29,13 @@ def main() -> int:
     ap.add_argument("--flying", type=float, default=0.0,
                     help="share (0-1) of the pixels within two of each depth edge that return a blend of the "
                          "surfaces on either side, as a depth camera's flying pixels (0)")
+    ap.add_argument("--noise-correlation", type=float, default=0.0, metavar="PX",
+                    help="the width (pixels) over which neighbouring pixels' depth errors are correlated, as a "
+                         "stereo camera's matching window makes them (0: each pixel's own)")
+    ap.add_argument("--hole-size", type=float, default=0.0, metavar="PX",
+                    help="the lost pixels (2 %%) come in blobs about this many pixels across (0: one by one)")
+    ap.add_argument("--noise-sigma", type=float, default=1.0, metavar="MM",
+                    help="the depth error's standard deviation at 400 mm, growing with the square of the depth (1)")
     args = ap.parse_args()
     from knee.app.experiments.case_set import build_case_set
     from knee.app.console import say, take_terminations_as_interrupts
@@ -47,7 +54,8 @@ def main() -> int:
                            tuple(a.strip() for a in args.anatomies.split(",") if a.strip()),
                            tuple(f.strip() for f in args.families.split(",") if f.strip()),
                            progress=lambda s: say(f"[{time.perf_counter() - t0:5.0f} s] {s}"), patella=args.patella,
-                           flying=args.flying)
+                           flying=args.flying, correlation_px=args.noise_correlation, hole_px=args.hole_size,
+                           sigma_mm=args.noise_sigma)
     except KneeError as e:
         print(f"build_case_set: error: {e}", file=sys.stderr)
         return 2

@@ -196,6 +196,20 @@ def test_case_set_cases_do_not_depend_on_the_subset_built(small_case_set, tmp_pa
         assert c["truth_tf"] == f["truth_tf"]
         a, b = np.load(fly / c["depth"]), np.load(small_case_set / f["depth"])
         assert 0.002 < np.mean(a != b) < 0.05
+    # with the errors correlated and the lost pixels in blobs: the same cases and the same surface seen (the
+    # errors as large), the index says so
+    stereo = build_case_set(tmp_path / "stereo", seed=4, data=None, mechanism_flexions=(40.0,), mismatches=(1.0,),
+                            correlation_px=3.0, hole_px=4.0, sigma_mm=1.5)
+    index = tomllib.loads((stereo / "case-set.toml").read_text())
+    assert index["noise_correlation_px"] == 3.0 and index["hole_px"] == 4.0 and index["noise_sigma_mm_at_400_mm"] == 1.5
+    for c in read_case_set(stereo)["case"]:
+        f = full[c["id"]]
+        assert c["truth_tf"] == f["truth_tf"]
+        a, b = np.load(stereo / c["depth"]), np.load(small_case_set / f["depth"])
+        both = (a > 0) & (b > 0)
+        sigma = (b[both] / 400.0) ** 2  # the plain image's error at that depth, 1 mm at 400 mm; 1.5 mm in the other
+        assert np.mean(both) > 0.9 * np.mean(b > 0)
+        assert np.std((a[both] - b[both]) / (np.sqrt(1.0 + 1.5 ** 2) * sigma)) == pytest.approx(1.0, abs=0.15)
 
 
 def test_case_set_runs_and_measures_against_its_truth(small_case_set):
@@ -355,7 +369,10 @@ def test_case_set_build_refuses_bad_choices_before_writing(tmp_path):
                     ({"anatomies": ("visible-human-male",)}, "without the data folder"),
                     ({"families": ("measured",)}, "without the data folder"),
                     ({"flying": 1.5}, "flying pixels' share must lie from 0 to 1, got 1.5"),
-                    ({"flying": float("nan")}, "flying pixels' share must lie from 0 to 1, got nan")):
+                    ({"flying": float("nan")}, "flying pixels' share must lie from 0 to 1, got nan"),
+                    ({"correlation_px": -2.0}, "noise correlation must lie from 0 to 100 pixels, got -2.0"),
+                    ({"hole_px": float("nan")}, "hole size must lie from 0 to 100 pixels, got nan"),
+                    ({"sigma_mm": -1.0}, "depth noise must lie from 0 to 50 mm, got -1.0")):
         with pytest.raises(KneeInputError, match=msg):
             build_case_set(out, data=None, **{"seed": 0, **kw})
         assert not out.exists()

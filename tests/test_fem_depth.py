@@ -78,6 +78,46 @@ def test_noise_model_statistics():
     assert np.std(far[far > 0] - 800.0) == pytest.approx(4.0, rel=0.03)  # quadratic in depth
 
 
+@pytest.mark.parametrize("width", [1.5, 3.0])
+def test_correlated_noise_has_the_same_sigma_and_the_smoothing_kernels_correlation(width):
+    """A stereo camera's errors are correlated over its matching window. White noise smoothed by a Gaussian
+    of width s has, between pixels r apart, the correlation exp(-r^2 / (4 s^2)) (a closed form, not the
+    code's); each pixel's sigma stays the uncorrelated model's, and a 10 x 10 patch's mean error (what a
+    voxel of a thinned cloud keeps) is far larger than white noise's 1/10 of it."""
+    d = np.full((480, 640), 400.0)
+    e = DepthNoise(dropout=0.0, correlation_px=width).apply(d, np.random.default_rng(3)) - 400.0
+    assert np.std(e) == pytest.approx(1.0, rel=0.05)
+    for r in (1, 2, 4, 8):
+        rho = np.mean(e[:, r:] * e[:, :-r]) / np.var(e)
+        assert rho == pytest.approx(np.exp(-r * r / (4 * width * width)), abs=0.03), r
+    patch = e.reshape(48, 10, 64, 10).mean(axis=(1, 3))
+    white = DepthNoise(dropout=0.0).apply(d, np.random.default_rng(3)) - 400.0
+    assert np.std(white.reshape(48, 10, 64, 10).mean(axis=(1, 3))) < 0.13 < 0.3 < np.std(patch)
+
+
+def test_holes_lose_the_same_share_in_blobs_and_leave_the_rest_as_it_was():
+    """``hole_px``: the dropout's share lost, in blobs of several pixels instead of one by one; the errors of
+    the pixels kept are those drawn without holes (the same stream)."""
+    d = np.full((300, 400), 400.0)
+    d[:, :40] = 0.0  # nothing seen there: a hole cannot be told from it, but the share counts the image
+    plain = DepthNoise().apply(d, np.random.default_rng(5))
+    holes = DepthNoise(hole_px=6.0).apply(d, np.random.default_rng(5))
+    lost = (holes == 0) & (d > 0)
+    assert abs(np.mean(holes[:, 40:] == 0) - 0.02) < 0.004
+    _, n_single = ndimage.label((plain == 0) & (d > 0))
+    _, n_blobs = ndimage.label(lost)
+    assert lost.sum() / n_blobs > 10.0 > 1.5 > ((plain == 0) & (d > 0)).sum() / n_single
+    both = (holes > 0) & (plain > 0)
+    np.testing.assert_array_equal(holes[both], plain[both])
+
+
+@pytest.mark.parametrize("bad", [{"correlation_px": -1.0}, {"hole_px": float("nan")}, {"dropout": 1.5},
+                                 {"sigma_at_ref": float("inf")}, {"ref_depth": 0.0}])
+def test_the_noise_model_refuses_impossible_settings(bad):
+    with pytest.raises(KneeInputError, match=next(iter(bad))):
+        DepthNoise(**bad)
+
+
 def test_depth_image_and_point_cloud_files(tmp_path, knee_like):
     cam = _camera()
     d = render_depth(knee_like.vertices, knee_like.faces, cam)

@@ -93,7 +93,14 @@ FLYING_EDGE_MM = 20.0
 class DepthNoise:
     """Depth noise of a stereo RGB-D camera: zero-mean Gaussian with ``sigma = sigma_at_ref *
     (z / ref_depth)^2`` (error growing with the square of the depth), and a fraction of pixels lost.
-    Defaults: 1 mm at 400 mm, 2% dropout.
+    Defaults: 1 mm at 400 mm, 2% dropout, each pixel's error and loss drawn on its own.
+
+    A stereo camera matches windows of pixels, so neighbouring pixels err together and lose their depth
+    together (a patch with too little texture, a glint). With ``correlation_px`` > 0 the error is white noise
+    smoothed by a Gaussian of that many pixels (its standard deviation), rescaled so that each pixel's
+    ``sigma`` is the same as without: thinning a cloud to voxels then no longer averages the error away.
+    With ``hole_px`` > 0 the lost pixels come in blobs about that many pixels across instead of one by one:
+    the pixels where such a smoothed field is highest, ``dropout`` of the image.
 
     With ``flying`` > 0, flying pixels too: that share of the pixels within ``flying_band`` pixels of a depth
     edge (a seen pixel next to an unseen one, or stepping over :data:`FLYING_EDGE_MM` to a neighbour), on
@@ -107,13 +114,34 @@ class DepthNoise:
     flying: float = 0.0
     flying_band: int = 2
     flying_behind_mm: float = 300.0
+    correlation_px: float = 0.0
+    hole_px: float = 0.0
+
+    def __post_init__(self):
+        for name in ("sigma_at_ref", "dropout", "flying", "flying_band", "flying_behind_mm", "correlation_px",
+                     "hole_px"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0.0):
+                raise KneeInputError(f"the depth noise's {name} must be a finite number >= 0, got {v!r}")
+        if not (np.isfinite(self.ref_depth) and self.ref_depth > 0.0):
+            raise KneeInputError(f"the depth noise's ref_depth must be a positive number, got {self.ref_depth!r}")
+        for name in ("dropout", "flying"):
+            if getattr(self, name) > 1.0:
+                raise KneeInputError(f"the depth noise's {name} is a share from 0 to 1, got {getattr(self, name)!r}")
 
     def apply(self, depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         d = np.array(depth, dtype=float, copy=True)
         seen = d > 0
         sigma = self.sigma_at_ref * (d[seen] / self.ref_depth) ** 2
-        d[seen] += rng.normal(size=sigma.size) * sigma
-        lost = rng.random(d.shape) < self.dropout
+        if self.correlation_px > 0.0:
+            d[seen] += _smooth_field(rng, d.shape, self.correlation_px)[seen] * sigma
+        else:
+            d[seen] += rng.normal(size=sigma.size) * sigma
+        if self.hole_px > 0.0:
+            field = _smooth_field(rng, d.shape, self.hole_px / 2.0)
+            lost = field > np.quantile(field, 1.0 - self.dropout) if self.dropout > 0.0 else np.zeros(d.shape, bool)
+        else:
+            lost = rng.random(d.shape) < self.dropout
         d[lost] = 0.0
         if self.flying > 0.0:
             d = self._blend_edges(np.asarray(depth, float), d, rng)
@@ -133,6 +161,18 @@ class DepthNoise:
         hit = band & np.isfinite(front) & (rng.random(d.shape) < self.flying)
         d[hit] = front[hit] + rng.random(int(hit.sum())) * (back[hit] - front[hit])
         return d
+
+
+def _smooth_field(rng: np.random.Generator, shape, width_px: float) -> np.ndarray:
+    """White noise over an image of ``shape`` smoothed by a Gaussian of ``width_px`` pixels (its standard
+    deviation), rescaled to unit variance: the exact variance of the smoothed noise away from the borders,
+    (sum of the 1-D kernel's squares)^2, not the sample's, so that every draw has the same scale."""
+    radius = int(4.0 * width_px + 0.5)  # scipy's own truncation at 4 widths
+    x = np.arange(-radius, radius + 1, dtype=float)
+    k = np.exp(-0.5 * (x / width_px) ** 2)
+    k /= k.sum()
+    field = ndimage.gaussian_filter(rng.normal(size=shape), width_px, mode="wrap", truncate=4.0)
+    return field / float(np.sum(k ** 2))
 
 
 def default_camera(distance: float = 350.0, azimuth_deg: float = 35.0, elevation_deg: float = 30.0,

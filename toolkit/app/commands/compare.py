@@ -188,6 +188,12 @@ def run_cases(args) -> int:
     truth = ", the truth moving the patella" if index.get("truth_patella") else ""
     if index.get("flying_pixels"):
         truth += f", flying pixels at {100 * float(index['flying_pixels']):g} % of each edge's band"
+    if index.get("noise_correlation_px"):
+        truth += f", depth errors correlated over {float(index['noise_correlation_px']):g} px"
+    if index.get("noise_sigma_mm_at_400_mm", 1.0) != 1.0:
+        truth += f", depth noise {float(index['noise_sigma_mm_at_400_mm']):g} mm at 400 mm"
+    if index.get("hole_px"):
+        truth += f", holes of about {float(index['hole_px']):g} px"
     say(f"knee compare: case set {args.model} (seed {index.get('seed')}{truth}), {n} cases x {len(methods)} methods")
     bar = ProgressBar()
     title = f"Case set {Path(args.model).name} (seed {index.get('seed')}{truth})"

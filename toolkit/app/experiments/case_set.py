@@ -18,8 +18,9 @@ What makes the cases honest:
   for what no model captures; with ``patella=True`` that tissue also holds the subject's patella, moved by
   the truth mechanism's PF motion (:func:`truth_patella`), which the association model does not model;
 - the depth image is rendered in the camera's own frame (RealSense-like noise, 1 mm at 400 mm, 2 %
-  dropout; with ``flying``, blends of the surfaces at each depth edge, a depth camera's flying pixels; read
-  as ``knee fem`` reads a measured image, its flying pixels left out), from the paper's placement (350 mm,
+  dropout; with ``correlation_px`` and ``hole_px``, the error correlated and the lost pixels in blobs, as a
+  stereo camera's matching windows make them; with ``flying``, blends of the surfaces at each depth edge, a
+  depth camera's flying pixels; read as ``knee fem`` reads a measured image, its flying pixels left out), from the paper's placement (350 mm,
   oblique: 35 deg toward lateral, raised 30 deg) and two others; the methods get the image, the intrinsics and a rough pose of the knee in the camera's frame,
   the truth turned 15-30 deg about the joint centre and moved 25-50 mm.
 
@@ -258,7 +259,8 @@ def case_rng(seed: int, *keys: str) -> np.random.Generator:
 def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible-human-male"),
                    families=("mechanism+deviation", "measured"), progress: Callable[[str], None] | None = None,
                    mechanism_flexions=MECHANISM_FLEXIONS, measured_flexions=MEASURED_FLEXIONS,
-                   mismatches=MISMATCHES_MM, patella: bool = False, flying: float = 0.0) -> Path:
+                   mismatches=MISMATCHES_MM, patella: bool = False, flying: float = 0.0,
+                   correlation_px: float = 0.0, hole_px: float = 0.0, sigma_mm: float = 1.0) -> Path:
     """Build the case set into ``out`` (a new folder; see the module docstring). ``data``: the folder
     holding ``visible-human-male/`` and ``lenhart2015/``; without it, the phantom's mechanism cases only.
     Each pose is seen from the paper's placement at every skin mismatch, and from the other placements at
@@ -268,13 +270,22 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
     case's flexion (:func:`truth_patella`); without, the skin over the knee's front follows the femur and
     the tibia only, as the association model's does. ``flying``: the share of the pixels near each depth
     edge that return a blend of the surfaces on either side (a depth camera's flying pixels; the noise
-    model's ``flying``, :class:`knee.models.fem.depth.DepthNoise`); the rest of each image as without."""
+    model's ``flying``, :class:`knee.models.fem.depth.DepthNoise`); the rest of each image as without.
+    ``correlation_px``, ``hole_px``: the noise model's, the width (pixels) over which neighbouring pixels'
+    errors are correlated and the size of the blobs the lost pixels come in (0: each pixel on its own);
+    ``sigma_mm``: the depth error's standard deviation at 400 mm (growing with the square of the depth)."""
     out = Path(out)
     say = progress or (lambda text: None)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise KneeInputError(f"the seed must be a non-negative integer, got {seed!r}")
     if not 0.0 <= flying <= 1.0:  # also refuses NaN
         raise KneeInputError(f"the flying pixels' share must lie from 0 to 1, got {flying!r}")
+    for name, v, top, unit in (("noise correlation", correlation_px, 100.0, "pixels"),
+                               ("hole size", hole_px, 100.0, "pixels"), ("depth noise", sigma_mm, 50.0, "mm")):
+        if not (isinstance(v, (int, float, np.integer, np.floating)) and 0.0 <= v <= top):  # also refuses NaN
+            raise KneeInputError(f"the {name} must lie from 0 to {top:g} {unit}, got {v!r}")
+    noise = DepthNoise(sigma_at_ref=float(sigma_mm), flying=flying, correlation_px=float(correlation_px),
+                       hole_px=float(hole_px))
     for kind, given, known in (("anatomy", anatomies, ANATOMIES), ("case family", families, FAMILIES)):
         unknown = [g for g in given if g not in known]
         if unknown or not given:
@@ -326,7 +337,7 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
                     cid = f"{pose_id}-{cname}"
                     rng = case_rng(seed, cid)
                     cam = default_camera(distance=dist, azimuth_deg=az, elevation_deg=el, target=centre)
-                    depth = DepthNoise(flying=flying).apply(render_depth(verts, skin.faces, cam), rng)
+                    depth = noise.apply(render_depth(verts, skin.faces, cam), rng)
                     folder = out / "cases" / cid
                     folder.mkdir(parents=True)
                     np.save(folder / "depth.npy", depth.astype(np.float32))
@@ -343,7 +354,7 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
                         "truth_tf": pose_to_joint(T_tibia).tolist(),
                         "T_camera_femur_ct": (T_cam_model @ invert_poses(Tf)).tolist(),
                         "T_camera_tibia_ct": (T_cam_model @ rel @ invert_poses(Tf)).tolist()})
-    _write_index(out, seed, entries, cases, patella, flying)
+    _write_index(out, seed, entries, cases, patella, noise)
     return out
 
 
@@ -406,9 +417,12 @@ def truth_patella(subject, anatomy, T_ct_femur, truth: Mechanism):
     return patella, motion
 
 
-def _write_index(out: Path, seed: int, entries, cases, patella: bool = False, flying: float = 0.0) -> None:
+def _write_index(out: Path, seed: int, entries, cases, patella: bool = False, noise: DepthNoise | None = None) -> None:
+    noise = noise or DepthNoise()
     lines = [f'format = "{FORMAT}"', f"version = {VERSION}", f"seed = {int(seed)}",
-             f"truth_patella = {'true' if patella else 'false'}", f"flying_pixels = {float(flying)!r}", ""]
+             f"truth_patella = {'true' if patella else 'false'}", f"flying_pixels = {float(noise.flying)!r}",
+             f"noise_correlation_px = {float(noise.correlation_px)!r}", f"hole_px = {float(noise.hole_px)!r}",
+             f"noise_sigma_mm_at_{noise.ref_depth:g}_mm = {float(noise.sigma_at_ref)!r}", ""]
     for e in entries:
         lines += ["[[anatomy]]", f"name = {toml_string(e.name)}", f"subject = {toml_string(str(e.subject))}",
                   f"prior = {toml_string(str(e.prior))}", f"truth_mechanism = {toml_string(e.truth_mechanism)}",
