@@ -401,7 +401,8 @@ class RoughRegistration:
 
 
 def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FLEXIONS_DEG,
-                     reaches_mm=ROUGH_REACHES_MM, guess_within=ROUGH_GUESS_WITHIN) -> RoughRegistration:
+                     reaches_mm=ROUGH_REACHES_MM, guess_within=ROUGH_GUESS_WITHIN,
+                     local_below: float | None = None) -> RoughRegistration:
     """Place a point cloud (P, 3; its own frame, e.g. the camera's) on the model when its pose is known
     only roughly: from ``T_init`` (cloud to model, within ``guess_within`` = (deg, mm), about 30 deg and
     50 mm), or, without one, from a global registration on shape features
@@ -416,7 +417,10 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
     lateral view of the phantom at 45 deg, its guess 24 deg and 44 mm off, matched the skin at 15 deg
     flexion 122 mm away with 53 % of the points; the global starts found 86 %, 4 mm from the truth).
     A cloud of more than :data:`ROUGH_MAX_POINTS` (after 4 mm voxels) is searched with a subsample of that
-    many; the match it finds is scored on all of them. Raises :class:`KneeInputError` when the cloud is too small."""
+    many; the match it finds is scored on all of them. ``local_below``: where the match from ``T_init``
+    holds fewer than this share of the points within 5 mm, it is returned without the global starts (a
+    caller that first leaves out the background, then tries them). Raises :class:`KneeInputError` when the
+    cloud is too small."""
     every = voxel_downsample(_checked_cloud(points), VOXEL_MM)
     pts = every
     if len(every) > ROUGH_MAX_POINTS:
@@ -457,7 +461,8 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
     c = np.array([0.0, skin.shank_below, 0.0])
     turned = math.degrees(Rotation.from_matrix(D[:3, :3]).magnitude())
     moved = float(np.linalg.norm(transform_points(D, c[None])[0] - c))
-    if turned > 2.0 * guess_within[0] or moved > 2.0 * guess_within[1]:
+    poor = local_below is not None and best.inliers < local_below
+    if (turned > 2.0 * guess_within[0] or moved > 2.0 * guess_within[1]) and not poor:
         other = search(global_starts)
         if (other.inliers, -other.rms) > (best.inliers, -best.rms):
             best = other

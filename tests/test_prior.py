@@ -407,6 +407,13 @@ def test_rough_registration_tries_the_global_starts_where_the_guess_led_it_astra
     assert calls and r.inliers > alone.inliers + 0.1
     rot, shift = off(r)
     assert rot < 10.0 and shift < 15.0, (rot, shift)
+    # a caller that leaves out the background first (a whole camera frame) asks for the guess's own match
+    # where it holds fewer points than it needs: returned as the guess alone gives it, no global starts
+    calls.clear()
+    poor = P.register_roughly(sk, pts, guess(90.0, 100.0), local_below=alone.inliers + 0.01)
+    assert not calls and poor.inliers == pytest.approx(alone.inliers) and off(poor)[0] > 90.0
+    P.register_roughly(sk, pts, guess(90.0, 100.0), local_below=alone.inliers - 0.01)
+    assert calls
 
 
 def test_rough_registration_searches_a_large_cloud_with_a_subsample(volunteer, scene, monkeypatch):

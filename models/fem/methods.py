@@ -73,6 +73,7 @@ from knee.models.fem.mapping import TrilinearMapping
 from knee.models.fem.scene import AssociationModel, bone_cell_masks, knee_angles
 from knee.models.mechanism.solver import Mechanism
 from knee.models.prior import (
+    ROUGH_MAX_POINTS,
     VOXEL_MM,
     FlexionEstimate,
     SkinModel,
@@ -1098,16 +1099,25 @@ def reconstruct_in_camera(model: AssociationModel, prior: Mechanism, points_cam,
     registration). The cloud is placed on the prior's skin (:func:`knee.models.prior.register_roughly`),
     then the method runs in the model frame. Where the placed cloud mostly misses the skin, as a depth
     image that holds the table, the other leg or the room does, the points far from the skin are left out
-    and the placement made again (:func:`drop_background`, said in the notes). Returns
+    and the placement made again (:func:`drop_background`, said in the notes). A cloud of more thinned
+    points than a view of a knee holds (over :data:`knee.models.prior.ROUGH_MAX_POINTS`: a whole camera
+    frame) placed from ``T_init`` with most of it missing is taken for background first, its global starts
+    (slow on a whole frame) left for the placement after the background is left out, and only where that
+    fails too for a poor guess: the whole cloud placed again with the global starts. Returns
     (:class:`Reconstruction`, the registration); the reconstruction's world is the registration's frame,
     ``invert_poses(registration.T_model_world)`` takes it to the camera. Raises :class:`KneeInputError` when
     the points do not show this knee."""
     skin = skin_model(model, prior, options.get("flexion_skin", "blend"))
-    points_cam = np.asarray(points_cam, float)
-    rough = register_roughly(skin, points_cam, T_init)
-    dropped = 0
+    every = np.asarray(points_cam, float)
+    frame = T_init is not None and len(voxel_downsample(every, VOXEL_MM)) > ROUGH_MAX_POINTS
+    points_cam, rough, dropped = every, register_roughly(skin, every, T_init,
+                                                         local_below=MIN_REGISTERED if frame else None), 0
     if rough.inliers < MIN_REGISTERED:
-        points_cam, rough, dropped = drop_background(skin, points_cam, rough, T_init)
+        points_cam, rough, dropped = drop_background(skin, every, rough, T_init)
+    if rough.inliers < MIN_REGISTERED and frame:  # the guess may be off, not the points: globally
+        points_cam, rough, dropped = every, register_roughly(skin, every, T_init), 0
+        if rough.inliers < MIN_REGISTERED:
+            points_cam, rough, dropped = drop_background(skin, every, rough, T_init)
     if rough.inliers < MIN_REGISTERED:
         raise KneeInputError(f"the points do not show this knee: after registration only {100 * rough.inliers:.0f} % "
                              f"of them lie within 5 mm of its skin (RMS {rough.rms:.1f} mm)"
