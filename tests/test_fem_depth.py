@@ -351,9 +351,9 @@ def test_mixed_pixels_are_the_blends_at_depth_edges_not_a_steep_surface_noise_or
     pixels wide around the knee's outline, are found (all but a few) and left out, so hardly a point lies
     between the knee and the wall; the knee's own pixels stay, its outline's too (next to the blends, but
     continued by the knee's own), and so does its own occluding edge (the bump over the capsule), even with
-    the noise model's depth noise and dropout holes, and so do those of a plane seen 80 deg
-    from face-on, whose neighbouring pixels step tan 80 deg = 5.7 pixel footprints apart (a steep surface,
-    not an edge)."""
+    the noise model's depth noise and dropout holes (a stereo camera's too: correlated, in blobs), and so do
+    those of a plane seen 80 deg from face-on, whose neighbouring pixels step tan 80 deg = 5.7 pixel
+    footprints apart (a steep surface, not an edge)."""
     cam, clean, knee, d, flying, leg = flying_scene
     on = knee > 0
     own = ndimage.binary_dilation(mixed_pixels(clean, cam.K), iterations=2)  # the bump's occluding edge
@@ -375,6 +375,12 @@ def test_mixed_pixels_are_the_blends_at_depth_edges_not_a_steep_surface_noise_or
     # the knee alone, with its noise and holes: nothing but its own occluding edge and, where the noise meets
     # the outline's grazing rays, a few of its outermost pixels
     alone = mixed_pixels(knee, cam.K) & ~own
+    assert alone.sum() < 20 and not (alone & ndimage.binary_erosion(clean > 0, iterations=2)).any()
+    # and with a stereo camera's errors, correlated over 3 pixels at a D435's rated 1.6 mm at 400 mm, its lost
+    # pixels in blobs (a blob's rim steps to no seen neighbour: not an edge to blend across)
+    stereo = DepthNoise(sigma_at_ref=1.6, correlation_px=3.0, hole_px=4.0).apply(clean, np.random.default_rng(6))
+    alone = mixed_pixels(stereo, cam.K) & ~own
+    assert (stereo[clean > 0] == 0).sum() > 1000
     assert alone.sum() < 20 and not (alone & ndimage.binary_erosion(clean > 0, iterations=2)).any()
     # a plane turned 80 deg from the camera's axis: a steep surface, every pixel kept
     plane = trimesh.creation.box(extents=[400, 400, 1]).apply_transform(
