@@ -422,7 +422,7 @@ def _write_index(out: Path, seed: int, entries, cases, patella: bool = False, no
     lines = [f'format = "{FORMAT}"', f"version = {VERSION}", f"seed = {int(seed)}",
              f"truth_patella = {'true' if patella else 'false'}", f"flying_pixels = {float(noise.flying)!r}",
              f"noise_correlation_px = {float(noise.correlation_px)!r}", f"hole_px = {float(noise.hole_px)!r}",
-             f"noise_sigma_mm_at_{noise.ref_depth:g}_mm = {float(noise.sigma_at_ref)!r}", ""]
+             f"noise_sigma_mm_at_400_mm = {float(noise.sigma_at_ref * (400.0 / noise.ref_depth) ** 2)!r}", ""]
     for e in entries:
         lines += ["[[anatomy]]", f"name = {toml_string(e.name)}", f"subject = {toml_string(str(e.subject))}",
                   f"prior = {toml_string(str(e.prior))}", f"truth_mechanism = {toml_string(e.truth_mechanism)}",
