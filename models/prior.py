@@ -402,7 +402,7 @@ class RoughRegistration:
 
 def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FLEXIONS_DEG,
                      reaches_mm=ROUGH_REACHES_MM, guess_within=ROUGH_GUESS_WITHIN,
-                     local_below: float | None = None) -> RoughRegistration:
+                     local_below: float | None = None, max_points: int | None = None) -> RoughRegistration:
     """Place a point cloud (P, 3; its own frame, e.g. the camera's) on the model when its pose is known
     only roughly: from ``T_init`` (cloud to model, within ``guess_within`` = (deg, mm), about 30 deg and
     50 mm), or, without one, from a global registration on shape features
@@ -416,15 +416,16 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
     the better match kept (measured on the honest benchmark: a
     lateral view of the phantom at 45 deg, its guess 24 deg and 44 mm off, matched the skin at 15 deg
     flexion 122 mm away with 53 % of the points; the global starts found 86 %, 4 mm from the truth).
-    A cloud of more than :data:`ROUGH_MAX_POINTS` (after 4 mm voxels) is searched with a subsample of that
-    many; the match it finds is scored on all of them. ``local_below``: where the match from ``T_init``
+    A cloud of more than ``max_points`` (:data:`ROUGH_MAX_POINTS` unless given; after 4 mm voxels) is
+    searched with a subsample of that many; the match it finds is scored on all of them. ``local_below``: where the match from ``T_init``
     holds fewer than this share of the points within 5 mm, it is returned without the global starts (a
     caller that first leaves out the background, then tries them). Raises :class:`KneeInputError` when the
     cloud is too small."""
     every = voxel_downsample(_checked_cloud(points), VOXEL_MM)
     pts = every
-    if len(every) > ROUGH_MAX_POINTS:
-        pts = every[np.sort(np.random.default_rng(0).choice(len(every), ROUGH_MAX_POINTS, replace=False))]
+    budget = ROUGH_MAX_POINTS if max_points is None else int(max_points)
+    if len(every) > budget:
+        pts = every[np.sort(np.random.default_rng(0).choice(len(every), budget, replace=False))]
     lo, hi = skin.mech.assembly_range
     cands = sorted({float(np.clip(math.radians(d), lo, hi)) for d in flexions_deg})
 

@@ -1110,8 +1110,13 @@ def reconstruct_in_camera(model: AssociationModel, prior: Mechanism, points_cam,
     skin = skin_model(model, prior, options.get("flexion_skin", "blend"))
     every = np.asarray(points_cam, float)
     frame = T_init is not None and len(voxel_downsample(every, VOXEL_MM)) > ROUGH_MAX_POINTS
-    points_cam, rough, dropped = every, register_roughly(skin, every, T_init,
-                                                         local_below=MIN_REGISTERED if frame else None), 0
+    rough = None
+    if frame:  # a first look with a quarter of the points: is most of the frame background?
+        probe = register_roughly(skin, every, T_init, local_below=MIN_REGISTERED, max_points=ROUGH_MAX_POINTS // 4)
+        rough = probe if probe.inliers < MIN_REGISTERED else None
+    if rough is None:
+        rough = register_roughly(skin, every, T_init, local_below=MIN_REGISTERED if frame else None)
+    points_cam, dropped = every, 0
     if rough.inliers < MIN_REGISTERED:
         points_cam, rough, dropped = drop_background(skin, every, rough, T_init)
     if rough.inliers < MIN_REGISTERED and frame:  # the guess may be off, not the points: globally
