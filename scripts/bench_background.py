@@ -10,8 +10,9 @@ noise model's depth noise and flying pixels, and a plane 90 mm behind the femur'
 table) rendered with it; two rough poses, 15 deg and 25 mm and 28 deg and 45 mm off at the knee. The truth is the phantom's
 envelope, not an independent skin: this measures time and the background's handling, not accuracy (the
 honest benchmark does that). Per configuration, ``--runs`` runs (default 3) in one process, the model
-built once before the clock starts; median wall and CPU time (the machine may be shared), the flexion and
-the femur's angle from the truth.
+built once before the clock starts; median wall time and its range over the runs (the previous
+placement's ICP drifts with the table in some runs and not in others), median CPU time (the machine may be
+shared), the flexion and the femur's angle from the truth.
 
     .venv/bin/python scripts/bench_background.py [--runs 3]
 """
@@ -102,13 +103,13 @@ def main() -> int:
             femur.append(math.degrees(Rotation.from_matrix(T[:3, :3].T @ T_cam_model[:3, :3]).magnitude()))
             flex.append(recon.flexion_deg)
         rows.append((g, name, how, len(frames[name]), statistics.median(walls), statistics.median(cpus),
-                     statistics.median(flex), statistics.median(femur)))
-    print(f"{'rough pose':<14} {'frame':<15} {'placement':<20} {'points':>8} {'wall s':>7} {'CPU s':>7} "
-          f"{'x leg alone':>11} {'flexion':>8} {'femur off':>9}")
-    for g, name, how, n, wall, cpu, fl, fe in rows:
+                     statistics.median(flex), statistics.median(femur), min(walls), max(walls)))
+    print(f"{'rough pose':<14} {'frame':<15} {'placement':<20} {'points':>8} {'wall s':>7} {'range s':>11} "
+          f"{'CPU s':>7} {'x leg alone':>11} {'flexion':>8} {'femur off':>9}")
+    for g, name, how, n, wall, cpu, fl, fe, lo, hi in rows:
         base = next(r[4] for r in rows if r[0] == g and r[1] == "leg alone")
-        print(f"{g:<14} {name:<15} {how:<20} {n:>8} {wall:>7.2f} {cpu:>7.2f} {wall / base:>11.2f} {fl:>7.1f}° "
-              f"{fe:>8.1f}°")
+        print(f"{g:<14} {name:<15} {how:<20} {n:>8} {wall:>7.2f} {f'{lo:.1f}-{hi:.1f}':>11} {cpu:>7.2f} "
+              f"{wall / base:>11.2f} {fl:>7.1f}° {fe:>8.1f}°")
     print(f"(median of {args.runs} runs; the truth's flexion 60 deg; model built once, {len(frames)} frames)")
     return 0
 

@@ -1109,20 +1109,17 @@ def reconstruct_in_camera(model: AssociationModel, prior: Mechanism, points_cam,
     the points do not show this knee."""
     skin = skin_model(model, prior, options.get("flexion_skin", "blend"))
     every = np.asarray(points_cam, float)
-    frame = T_init is not None and len(voxel_downsample(every, VOXEL_MM)) > ROUGH_MAX_POINTS
-    rough = None
-    if frame:  # a first look with a quarter of the points: is most of the frame background?
-        probe = register_roughly(skin, every, T_init, local_below=MIN_REGISTERED, max_points=ROUGH_MAX_POINTS // 4)
-        rough = probe if probe.inliers < MIN_REGISTERED else None
-    if rough is None:
-        rough = register_roughly(skin, every, T_init, local_below=MIN_REGISTERED if frame else None)
-    points_cam, dropped = every, 0
-    if rough.inliers < MIN_REGISTERED:
-        points_cam, rough, dropped = drop_background(skin, every, rough, T_init)
-    if rough.inliers < MIN_REGISTERED and frame:  # the guess may be off, not the points: globally
-        points_cam, rough, dropped = every, register_roughly(skin, every, T_init), 0
-        if rough.inliers < MIN_REGISTERED:
-            points_cam, rough, dropped = drop_background(skin, every, rough, T_init)
+    if T_init is not None and len(voxel_downsample(every, VOXEL_MM)) > ROUGH_MAX_POINTS:  # a whole frame
+        # a first look with a quarter of the points: is most of the frame background?
+        look = register_roughly(skin, every, T_init, local_below=MIN_REGISTERED, max_points=ROUGH_MAX_POINTS // 4)
+        if look.inliers < MIN_REGISTERED:
+            points_cam, rough, dropped = drop_background(skin, every, look, T_init)
+        else:
+            points_cam, rough, dropped = _placed(skin, every, T_init, local_below=MIN_REGISTERED)
+        if rough.inliers < MIN_REGISTERED:  # the guess may be off, not the points: globally
+            points_cam, rough, dropped = _placed(skin, every, T_init)
+    else:
+        points_cam, rough, dropped = _placed(skin, every, T_init)
     if rough.inliers < MIN_REGISTERED:
         raise KneeInputError(f"the points do not show this knee: after registration only {100 * rough.inliers:.0f} % "
                              f"of them lie within 5 mm of its skin (RMS {rough.rms:.1f} mm)"
@@ -1134,6 +1131,16 @@ def reconstruct_in_camera(model: AssociationModel, prior: Mechanism, points_cam,
                               f"table, a wall, the other leg): on a dominant plane, or over {BACKGROUND_MM:g} mm from "
                               "the knee's skin once placed")
     return recon, rough
+
+
+def _placed(skin: SkinModel, points_cam, T_init, **search):
+    """The points placed on the skin from ``T_init`` (:func:`knee.models.prior.register_roughly` with
+    ``search``), and where they mostly miss it, placed again with their background left out
+    (:func:`drop_background`): (the points kept, the registration, how many were left out)."""
+    rough = register_roughly(skin, points_cam, T_init, **search)
+    if rough.inliers < MIN_REGISTERED:
+        return drop_background(skin, points_cam, rough, T_init)
+    return points_cam, rough, 0
 
 
 #: Where the roughly placed points mostly miss the skin, those farther than this from the skin posed near

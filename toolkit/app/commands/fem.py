@@ -16,7 +16,7 @@ from knee.app.console import ProgressBar, check_max_steps, check_new, error, num
 from knee.app.experiments.cases import case_points, case_truth, run_standard_case
 from knee.app.views.fem import FemRecorder
 from knee.foundations.errors import EXIT_NUMERICAL, DivergenceError, KneeInputError
-from knee.foundations.pointclouds import load_depth_image, load_point_cloud, sparse_points
+from knee.foundations.pointclouds import load_depth_image
 from knee.models.fem.depth import DepthNoise, camera_from_spec
 from knee.models.fem.methods import bone_phase_note
 from knee.models.fem.scene import FemSettings, build_association_model
@@ -37,12 +37,7 @@ def measured_points(args):
     if args.keep_flying and not (args.depth or args.cloud):
         raise KneeInputError("--keep-flying goes with --depth or --cloud (the measured points' flying pixels)")
     if args.cloud:
-        if not (math.isfinite(args.cloud_scale) and args.cloud_scale > 0):
-            raise KneeInputError(f"--cloud-scale must be a positive number, got {args.cloud_scale}")
-        pts = load_point_cloud(args.cloud)
-        if not args.keep_flying:
-            pts = pts[~sparse_points(pts)]
-        pts = fem_subject.checked_span(pts * args.cloud_scale, "--cloud-scale", args.cloud_scale)
+        pts = fem_subject.measured_cloud(args)[0]
         return pts if pose is None else pts @ pose[:3, :3].T + pose[:3, 3]
     if args.depth:
         if not args.intrinsics:

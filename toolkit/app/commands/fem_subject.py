@@ -90,6 +90,17 @@ def checked_span(points, flag: str, scale: float) -> np.ndarray:
     return points
 
 
+def measured_cloud(args) -> tuple[np.ndarray, np.ndarray]:
+    """``--cloud`` read in mm after ``--cloud-scale``: (the points kept (P, 3), the flying pixels left out
+    (F, 3): the points far from the others, none with ``--keep-flying``), or a one-line error for a bad scale
+    or a span that cannot be a knee's view in mm."""
+    if not (math.isfinite(args.cloud_scale) and args.cloud_scale > 0):
+        raise KneeInputError(f"--cloud-scale must be a positive number, got {args.cloud_scale}")
+    pts = load_point_cloud(args.cloud) * args.cloud_scale
+    flying = np.zeros(len(pts), bool) if args.keep_flying else sparse_points(pts)
+    return checked_span(pts[~flying], "--cloud-scale", args.cloud_scale), pts[flying]
+
+
 def _points(args):
     """(points (P, 3) camera frame, depth image or None, K or None, the flying pixels left out (F, 3): a
     depth image's on depth edges, a cloud's far from the others; none with ``--keep-flying``)."""
@@ -101,11 +112,8 @@ def _points(args):
     if args.cloud:
         if args.intrinsics:
             raise KneeInputError("--intrinsics goes with --depth, not --cloud")
-        if not (math.isfinite(args.cloud_scale) and args.cloud_scale > 0):
-            raise KneeInputError(f"--cloud-scale must be a positive number, got {args.cloud_scale}")
-        pts = load_point_cloud(args.cloud) * args.cloud_scale
-        flying = np.zeros(len(pts), bool) if args.keep_flying else sparse_points(pts)
-        return checked_span(pts[~flying], "--cloud-scale", args.cloud_scale), None, None, pts[flying]
+        pts, flying = measured_cloud(args)
+        return pts, None, None, flying
     if not args.intrinsics:
         raise KneeInputError("--depth needs --intrinsics fx,fy,cx,cy (pixels)")
     fx, fy, cx, cy = numbers(args.intrinsics, 4, "--intrinsics")
