@@ -434,26 +434,45 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
         trimmed = np.sort(d)[: max(1, int(0.9 * d.size))]
         return RoughRegistration(T, a, float(np.mean(d < 5.0)), float(np.sqrt(np.mean(trimmed ** 2))))
 
-    def search(starts) -> RoughRegistration:
+    def refined(best, a, starts):
+        samples, normals, _ = skin.samples(a)
+        for T0 in starts(samples, normals):
+            for schedule in reaches_mm:
+                T = T0
+                for reach in schedule:
+                    T, _, _ = icp(pts, samples, init=T, max_distance=reach, iterations=30, target_normals=normals)
+                match = scored(T, a, pts)
+                if best is None or (match.inliers, -match.rms) > (best.inliers, -best.rms):
+                    best = match
+        return best
+
+    def search(starts, turn_over: bool = False) -> RoughRegistration:
         best = None
         for a in cands:
-            samples, normals, _ = skin.samples(a)
-            for T0 in starts(samples, normals):
-                for schedule in reaches_mm:
-                    T = T0
-                    for reach in schedule:
-                        T, _, _ = icp(pts, samples, init=T, max_distance=reach, iterations=30,
-                                      target_normals=normals)
-                    match = scored(T, a, pts)
-                    if best is None or (match.inliers, -match.rms) > (best.inliers, -best.rms):
-                        best = match
+            best = refined(best, a, starts)
+        if turn_over:
+            # a leg is near a cylinder, a flexed one near a symmetric V: a match can hold about as many
+            # points turned end over end or front to back as the right way round (measured: a synthetic
+            # leg 177 deg off with 66 % of the points on the skin, the right way round 69 %). Such a turn
+            # keeps the cloud's ellipsoid of inertia, whose only half-turns are about its principal axes:
+            # the best match turned half a turn about each of them (through the cloud's centre) is refined
+            T = best.T_model_world
+            placed = transform_points(T, pts)
+            c = placed.mean(axis=0)
+            turns = []
+            for axis in np.linalg.eigh(np.cov((placed - c).T))[1].T:
+                F = np.eye(4)
+                F[:3, :3] = Rotation.from_rotvec(math.pi * axis).as_matrix()
+                F[:3, 3] = c - F[:3, :3] @ c
+                turns.append(F @ T)
+            best = refined(best, best.flexion, lambda samples, normals: turns)
         return best if pts is every else scored(best.T_model_world, best.flexion, every)
 
     def global_starts(samples, normals):
         return [global_register(pts, samples, voxel=6.0, target_normals=normals, seed=k)[0] for k in range(2)]
 
     if T_init is None:
-        return search(global_starts)
+        return search(global_starts, turn_over=True)
     T_init = np.asarray(T_init, float)
     best = search(lambda samples, normals: [T_init])
     # how far the match lies from the guess, as the guess's own bounds are stated: a rotation, and the
@@ -464,7 +483,7 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
     moved = float(np.linalg.norm(transform_points(D, c[None])[0] - c))
     poor = local_below is not None and best.inliers < local_below
     if (turned > 2.0 * guess_within[0] or moved > 2.0 * guess_within[1]) and not poor:
-        other = search(global_starts)
+        other = search(global_starts, turn_over=True)
         if (other.inliers, -other.rms) > (best.inliers, -best.rms):
             best = other
     return best

@@ -416,6 +416,38 @@ def test_rough_registration_tries_the_global_starts_where_the_guess_led_it_astra
     assert calls
 
 
+def test_a_global_match_turned_over_is_turned_back(volunteer, scene, monkeypatch):
+    """Shape features can match a near-cylindrical leg turned end over end about as well as the right way
+    round. Where the global registration returns such a start (here: the truth turned 170 deg about a
+    tilted transverse axis and shifted 8 mm; ICP from it alone stays turned over), the rough registration
+    also refines its best match turned half a turn about each of the model's axes, and lands near the truth
+    (the scene's world is the model frame)."""
+    from scipy.spatial.transform import Rotation
+
+    import knee.models.prior as P
+
+    ph, _, pts = scene
+    sk = SkinModel(volunteer, ph)
+    axis = np.array([0.15, 0.1, 1.0]) / np.linalg.norm([0.15, 0.1, 1.0])
+    c = pts.mean(axis=0)
+    flip = np.eye(4)
+    flip[:3, :3] = Rotation.from_rotvec(math.radians(170.0) * axis).as_matrix()
+    flip[:3, 3] = c - flip[:3, :3] @ c + np.array([8.0, 0.0, 0.0])
+    monkeypatch.setattr(P, "global_register", lambda *a, **k: (flip.copy(), 0.5))
+
+    def off(r):
+        T = r.T_model_world
+        rot = math.degrees(math.acos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+        return rot, float(np.linalg.norm(transform_points(T, pts) - pts, axis=1).mean())
+
+    stays = P.register_roughly(sk, pts, flip, guess_within=(1e9, 1e9))  # ICP from the turned start alone
+    assert off(stays)[0] > 90.0
+    r = P.register_roughly(sk, pts)
+    rot, shift = off(r)
+    assert rot < 10.0 and shift < 15.0, (rot, shift)
+    assert r.inliers > stays.inliers + 0.1
+
+
 def test_rough_registration_searches_a_large_cloud_with_a_subsample(volunteer, scene, monkeypatch):
     """A cloud over the search's point budget (here lowered to a third of the scene's thinned points, as a
     frame with a table is over the default) is searched with a subsample of that many: the
