@@ -394,3 +394,70 @@ def test_a_whole_frame_leaves_out_its_background_before_any_global_search(case, 
     turned, flexion, _ = found(invert_poses(T_cam_model @ far))
     assert abs(flexion - math.degrees(case["tf"][0])) < 2.0 and turned < 3.0
     assert sizes and all(s < P.ROUGH_MAX_POINTS for s in sizes), sizes
+
+
+def test_a_whole_frames_first_look_finds_a_leg_that_holds_most_of_it(case):
+    """The first look at a whole frame searches with only a few of its thinned points
+    (:data:`knee.models.fem.methods.LOOK_POINTS`) to decide whether most of the frame misses the skin. On a
+    frame where the leg holds most of the points (the case's cloud and a patch of table beside it, half as
+    many thinned points as the leg) the look, from a guess 15 deg and 20 mm off, finds the leg's share as a search with
+    all the points does (within 5 points in 100), above the share that makes it a placement: it does not
+    take the leg for background."""
+    import knee.models.fem.methods as M
+    import knee.models.prior as P
+    from knee.foundations.conventions import invert_poses
+    from knee.foundations.pointclouds import voxel_downsample
+    from knee.models.fem.methods import skin_model
+    from knee.models.fem.scene import build_knee_model
+    import knee
+    from knee.fitting.subject import load_subject
+    from knee.fitting.subject_anatomy import subject_anatomy
+
+    pts = np.asarray(o3d.io.read_point_cloud(str(case["tmp"] / "cloud.ply")).points)
+    n_leg = len(voxel_downsample(pts, P.VOXEL_MM))
+    T_cam_model = case["T_cam_ct"] @ case["frames"]["femur"]
+    g = np.random.default_rng(2).uniform(-90.0, 90.0, size=(20000, 2))
+    table = np.column_stack([np.full(len(g), -90.0), g]) @ T_cam_model[:3, :3].T + T_cam_model[:3, 3]
+    frame = np.vstack([pts, table])
+    thinned = voxel_downsample(frame, P.VOXEL_MM)
+    assert len(thinned) > M.LOOK_POINTS * 4 and 1.3 * n_leg < len(thinned) < 1.7 * n_leg
+    prior = knee.Mechanism(knee.load_model(case["tmp"] / "prior.toml"))
+    model = build_knee_model(subject_anatomy(load_subject(case["dir"]), prior.params), prior=prior)
+    skin = skin_model(model, prior)
+    D = np.eye(4)  # a guess within its bounds: 15 deg about the knee (the model frame's origin), 20 mm
+    D[:3, :3] = Rotation.from_rotvec(np.radians(15.0) * np.array([0.6, 0.0, 0.8])).as_matrix()
+    D[:3, 3] = [12.0, -16.0, 0.0]
+    T_init = D @ invert_poses(T_cam_model)
+    look = P.register_roughly(skin, thinned, T_init, local_below=M.MIN_REGISTERED, max_points=M.LOOK_POINTS)
+    full = P.register_roughly(skin, thinned, T_init, local_below=M.MIN_REGISTERED, max_points=len(thinned))
+    assert full.inliers > M.MIN_REGISTERED + 0.05
+    assert look.inliers > M.MIN_REGISTERED and abs(look.inliers - full.inliers) < 0.05, (look.inliers, full.inliers)
+
+
+def test_the_points_near_the_skin_are_those_of_a_plain_nearest_neighbour_search(case):
+    """:func:`near_skin` (each posed skin asked only about the points not yet found near it and inside its
+    box grown by the reach) gives the same points as asking every posed skin about every point: a cloud of
+    the skin's own samples moved along their normals by 0-50 mm, and points scattered over a box ten times
+    the skin's size."""
+    import knee
+    from knee.fitting.subject import load_subject
+    from knee.fitting.subject_anatomy import subject_anatomy
+    from knee.models.fem.methods import near_skin, skin_model
+    from knee.models.fem.scene import build_knee_model
+    from scipy.spatial import cKDTree
+
+    prior = knee.Mechanism(knee.load_model(case["tmp"] / "prior.toml"))
+    model = build_knee_model(subject_anatomy(load_subject(case["dir"]), prior.params), prior=prior)
+    skin = skin_model(model, prior)
+    rng = np.random.default_rng(4)
+    samples, normals, _ = skin.samples(math.radians(40.0))
+    moved = samples + normals * rng.uniform(0.0, 50.0, len(samples))[:, None]
+    lo, hi = samples.min(axis=0), samples.max(axis=0)
+    c, span = 0.5 * (lo + hi), hi - lo
+    scattered = c + (rng.random((20000, 3)) - 0.5) * 10.0 * span
+    pts = np.vstack([moved, scattered])
+    flexions = [math.radians(d) for d in (30.0, 40.0, 50.0)]
+    got = near_skin(skin, pts, flexions, 25.0)
+    d = np.min([cKDTree(skin.samples(a)[0]).query(pts)[0] for a in flexions], axis=0)
+    np.testing.assert_array_equal(got, d < 25.0)
+    assert 0.2 < got[: len(moved)].mean() < 0.8 and got[len(moved):].any()

@@ -1090,6 +1090,10 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
 
 #: Fraction of the points that must lie within 5 mm of the skin after the rough registration.
 MIN_REGISTERED = 0.3
+#: How many of a whole frame's thinned points its first look searches with (:func:`reconstruct_in_camera`):
+#: it only decides whether most of the frame misses the skin (its match scored on all of them); where the
+#: leg holds the 30 % that makes it a placement, a tenth of the search's points still hold 300 of the leg's.
+LOOK_POINTS = ROUGH_MAX_POINTS // 10
 
 
 def reconstruct_in_camera(model: AssociationModel, prior: Mechanism, points_cam, T_init=None, method: str = "links",
@@ -1109,9 +1113,11 @@ def reconstruct_in_camera(model: AssociationModel, prior: Mechanism, points_cam,
     the points do not show this knee."""
     skin = skin_model(model, prior, options.get("flexion_skin", "blend"))
     every = np.asarray(points_cam, float)
-    if T_init is not None and len(voxel_downsample(every, VOXEL_MM)) > ROUGH_MAX_POINTS:  # a whole frame
-        # a first look with a quarter of the points: is most of the frame background?
-        look = register_roughly(skin, every, T_init, local_below=MIN_REGISTERED, max_points=ROUGH_MAX_POINTS // 4)
+    thinned = voxel_downsample(every, VOXEL_MM) if T_init is not None else every
+    if T_init is not None and len(thinned) > ROUGH_MAX_POINTS:  # a whole frame
+        # a first look with a few of the points: is most of the frame background? (the thinned points
+        # searched: thinning them again is the identity)
+        look = register_roughly(skin, thinned, T_init, local_below=MIN_REGISTERED, max_points=LOOK_POINTS)
         if look.inliers < MIN_REGISTERED:
             points_cam, rough, dropped = drop_background(skin, every, look, T_init)
         else:
@@ -1152,6 +1158,20 @@ BACKGROUND_MM = 25.0
 BACKGROUND_FLEXIONS_DEG = tuple(range(-20, 21, 5))
 
 
+def near_skin(skin: SkinModel, points_model, flexions, reach_mm: float = BACKGROUND_MM) -> np.ndarray:
+    """Which points (P,) bool, model frame, lie within ``reach_mm`` of the skin posed at any of ``flexions``
+    (rad; its samples). Each posed skin is asked only about the points not yet found near it and inside its
+    samples' box grown by the reach (most of a whole frame's table lies outside)."""
+    p = np.asarray(points_model, float)
+    found = np.zeros(len(p), bool)
+    for a in flexions:
+        samples, _, tree = skin.samples(a)
+        ask = np.nonzero(~found & np.all((p > samples.min(axis=0) - reach_mm)
+                                         & (p < samples.max(axis=0) + reach_mm), axis=1))[0]
+        found[ask[tree.query(p[ask], distance_upper_bound=reach_mm)[0] < reach_mm]] = True
+    return found
+
+
 def drop_background(skin: SkinModel, points_cam, rough, T_init=None, rounds: int = 1):
     """The background of a depth image left out: its dominant plane (a table, a wall:
     :func:`knee.foundations.pointclouds.dominant_planes`; one only, and only here, where most points miss
@@ -1168,11 +1188,10 @@ def drop_background(skin: SkinModel, points_cam, rough, T_init=None, rounds: int
         return points_cam, rough, 0
     best = rough if keep.all() else register_roughly(skin, points_cam[keep], T_init)
     for _ in range(rounds):
-        p = transform_points(best.T_model_world, points_cam)
-        d = np.full(len(p), np.inf)
-        for a in sorted({float(np.clip(best.flexion + math.radians(k), lo, hi)) for k in BACKGROUND_FLEXIONS_DEG}):
-            d = np.minimum(d, skin.samples(a)[2].query(p, distance_upper_bound=BACKGROUND_MM)[0])
-        near = (d < BACKGROUND_MM) & keep
+        idx = np.nonzero(keep)[0]
+        flexions = sorted({float(np.clip(best.flexion + math.radians(k), lo, hi)) for k in BACKGROUND_FLEXIONS_DEG})
+        near = np.zeros(len(keep), bool)
+        near[idx[near_skin(skin, transform_points(best.T_model_world, points_cam[idx]), flexions)]] = True
         if near.sum() < MIN_POINTS:
             break
         keep = near
