@@ -353,7 +353,8 @@ def test_a_whole_frame_leaves_out_its_background_before_any_global_search(case, 
     whole frame, never run on it, only on what is left once the table is out, and the
     knee is found (flexion within 2 deg, the femur within a few degrees). With a guess far beyond its bounds
     (the knee turned 120 deg, 300 mm away) the table is left out the same way and the global starts on the
-    rest find the knee. The prior is the case's; the world is the camera's."""
+    rest find the knee; without a guess, the table is left out before the global search (a plane holding
+    half the frame). The prior is the case's; the world is the camera's."""
     import knee
     import knee.models.prior as P
     from knee.fitting.subject import load_subject
@@ -393,6 +394,12 @@ def test_a_whole_frame_leaves_out_its_background_before_any_global_search(case, 
     sizes.clear()
     turned, flexion, _ = found(invert_poses(T_cam_model @ far))
     assert abs(flexion - math.degrees(case["tf"][0])) < 2.0 and turned < 3.0
+    assert sizes and all(s < P.ROUGH_MAX_POINTS for s in sizes), sizes
+    # without a guess, the table (most of the frame, on one plane) is left out before the global search
+    sizes.clear()
+    turned, flexion, notes = found(None)
+    assert abs(flexion - math.degrees(case["tf"][0])) < 2.0 and turned < 3.0
+    assert any("left out as background" in n for n in notes)
     assert sizes and all(s < P.ROUGH_MAX_POINTS for s in sizes), sizes
 
 

@@ -65,6 +65,10 @@ class ImplicitEuler:
         "cholmod" (default: supernodal Cholesky when cvxopt is installed, SuperLU otherwise) or "superlu".
     """
 
+    #: The integrator's settings (as opposed to its state): what a model's reset keeps as the user set them.
+    SETTINGS = ("dt", "a", "b", "tol", "max_iterations", "refresh_cost", "adaptive_refresh", "restart_iterations",
+                "predict_refresh", "factor_backend")
+
     def __init__(self, x0, mass, fields, dt=0.05, rayleigh_mass=0.1, rayleigh_stiffness=0.1,
                  tol=1e-5, max_iterations=200, refresh_cost=None, fixed=None, node_rotations=None,
                  restart_iterations=40, predict_refresh=True, factor_backend="cholmod"):

@@ -503,6 +503,7 @@ def paper_method(model: AssociationModel, points, bone_force_scale: float = 1.0,
 
     ``on_step(k, phase, model, surface_forces, bone_forces)`` is called after every step (e.g. to record
     it or show progress; the surface forces act in the "surface" phase only)."""
+    model.reset()  # from the model as built, whatever ran on it before
     t_start = time.perf_counter()
     pts, fitness, T_reg = register_to_model(model, points)
     s = model.solver
@@ -970,6 +971,7 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
         raise KneeInputError(f"apart_share must be between 0 and 1 (the femur's share of the slide), got {apart_share}")
     if method == "paper":
         return paper_method(model, points, **paper_options)
+    model.reset()  # from the model as built, whatever ran on it before
     t0 = time.perf_counter()
     pts = np.asarray(points, float)
     try:
@@ -1094,6 +1096,11 @@ MIN_REGISTERED = 0.3
 #: it only decides whether most of the frame misses the skin (its match scored on all of them); where the
 #: leg holds the 30 % that makes it a placement, a tenth of the search's points still hold 300 of the leg's.
 LOOK_POINTS = ROUGH_MAX_POINTS // 10
+#: A whole frame (over :data:`knee.models.prior.ROUGH_MAX_POINTS` thinned points) placed without a guess has
+#: its dominant plane left out first where the plane holds at least this share of the thinned points. A
+#: leg's own skin has a 5 mm slab of up to 42-47 % of its thinned points (the honest benchmark's views), and a
+#: whole leg seen from one side thins to about 7,000 points: its slab holds at most a third of such a frame.
+WHOLE_FRAME_PLANE_SHARE = 0.5
 
 
 def reconstruct_in_camera(model: AssociationModel, prior: Mechanism, points_cam, T_init=None, method: str = "links",
@@ -1107,14 +1114,26 @@ def reconstruct_in_camera(model: AssociationModel, prior: Mechanism, points_cam,
     points than a view of a knee holds (over :data:`knee.models.prior.ROUGH_MAX_POINTS`: a whole camera
     frame) placed from ``T_init`` with most of it missing is taken for background first, its global starts
     (slow on a whole frame) left for the placement after the background is left out, and only where that
-    fails too for a poor guess: the whole cloud placed again with the global starts. Returns
+    fails too for a poor guess: the whole cloud placed again with the global starts. Such a frame without
+    ``T_init`` has its dominant plane left out before the global search where the plane holds half of it
+    (:data:`WHOLE_FRAME_PLANE_SHARE`), the whole frame placed only where what is left fails. Returns
     (:class:`Reconstruction`, the registration); the reconstruction's world is the registration's frame,
     ``invert_poses(registration.T_model_world)`` takes it to the camera. Raises :class:`KneeInputError` when
     the points do not show this knee."""
     skin = skin_model(model, prior, options.get("flexion_skin", "blend"))
     every = np.asarray(points_cam, float)
-    thinned = voxel_downsample(every, VOXEL_MM) if T_init is not None else every
-    if T_init is not None and len(thinned) > ROUGH_MAX_POINTS:  # a whole frame
+    thinned = voxel_downsample(every, VOXEL_MM)
+    whole = len(thinned) > ROUGH_MAX_POINTS  # a whole frame
+    plane = dominant_planes(every, VOXEL_MM, share=WHOLE_FRAME_PLANE_SHARE, max_planes=1) if whole and T_init is None \
+        else np.zeros(len(every), bool)
+    if plane.any():
+        # a whole frame without a guess, half of it on one plane: taken for background before any global
+        # search (slow on a whole frame, and mostly matching the plane); the whole frame placed only where
+        # what is left fails
+        points_cam, rough, dropped = drop_background(skin, every, None, plane=plane)
+        if rough is None or rough.inliers < MIN_REGISTERED:
+            points_cam, rough, dropped = _placed(skin, every, None)
+    elif whole and T_init is not None:
         # a first look with a few of the points: is most of the frame background? (the thinned points
         # searched: thinning them again is the identity)
         look = register_roughly(skin, thinned, T_init, local_below=MIN_REGISTERED, max_points=LOOK_POINTS)
@@ -1172,7 +1191,7 @@ def near_skin(skin: SkinModel, points_model, flexions, reach_mm: float = BACKGRO
     return found
 
 
-def drop_background(skin: SkinModel, points_cam, rough, T_init=None, rounds: int = 1):
+def drop_background(skin: SkinModel, points_cam, rough, T_init=None, rounds: int = 1, plane=None):
     """The background of a depth image left out: its dominant plane (a table, a wall:
     :func:`knee.foundations.pointclouds.dominant_planes`; one only, and only here, where most points miss
     the skin: a leg's own skin has a 5 mm slab holding up to 42-47 % of its thinned points),
@@ -1180,10 +1199,10 @@ def drop_background(skin: SkinModel, points_cam, rough, T_init=None, rounds: int
     from the prior's skin posed at any flexion within :data:`BACKGROUND_FLEXIONS_DEG` of the match's and
     the rest placed again from that match, ``rounds`` times. Returns (the points kept, the new
     registration, how many were left out); with too few points left, the input unchanged (and ``rough``,
-    and 0)."""
+    and 0). ``plane``: the dominant plane's points (P,) bool where the caller has found them already."""
     points_cam = np.asarray(points_cam, float)
     lo, hi = skin.mech.assembly_range
-    keep = ~dominant_planes(points_cam, VOXEL_MM, max_planes=1)
+    keep = ~(dominant_planes(points_cam, VOXEL_MM, max_planes=1) if plane is None else np.asarray(plane, bool))
     if keep.sum() < MIN_POINTS:
         return points_cam, rough, 0
     best = rough if keep.all() else register_roughly(skin, points_cam[keep], T_init)
