@@ -118,6 +118,7 @@ def tissue_floor_pose(anatomy, prior, points_cam, T_cam_femur, T_cam_tibia, mode
     points ``points_cam`` (camera frame) taken into the true femur's frame. Its error is the model's tissue
     against the truth's, with nothing else wrong. ``model``: the anatomy's association model, when built."""
     model = build_knee_model(anatomy, prior=prior) if model is None else model
+    model.reset()  # from the model as built, whatever ran on it before
     T_cam_femur = np.asarray(T_cam_femur, float)
     rel = invert_poses(T_cam_femur) @ np.asarray(T_cam_tibia, float) @ anatomy.tibia_pose
     alpha = float(pose_to_joint(rel)[0])
