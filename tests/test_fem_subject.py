@@ -374,8 +374,8 @@ def test_a_whole_frame_leaves_out_its_background_before_any_global_search(case, 
     prior = knee.Mechanism(knee.load_model(case["tmp"] / "prior.toml"))
     model = build_knee_model(subject_anatomy(load_subject(case["dir"]), prior.params), prior=prior)
     sizes = []
-    original = P.global_register
-    monkeypatch.setattr(P, "global_register", lambda src, *a, **k: sizes.append(len(src)) or original(src, *a, **k))
+    original = P.view_starts
+    monkeypatch.setattr(P, "view_starts", lambda sk, src, *a, **k: sizes.append(len(src)) or original(sk, src, *a, **k))
 
     def found(T_init):
         recon, rough = reconstruct_in_camera(model, prior, frame, T_init, "kinematics")

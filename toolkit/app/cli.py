@@ -151,6 +151,8 @@ def build_parser() -> argparse.ArgumentParser:
     co.add_argument("--truth-motion", help="subject: a measured motion (the subject folder's motion.csv format) whose "
                                            "rows pose the truth")
     co.add_argument("--only", help="case set: run only the cases whose id contains one of these (comma list)")
+    co.add_argument("--no-initial-pose", action="store_true",
+                    help="case set: leave each case's rough pose out (the global search finds the knee)")
     co.add_argument("--frames", type=int, help="subject: how many rows of the motion, spread over it (4)")
     co.add_argument("--truth", help="parameter set: the parameter set generating the truth (default: MODEL, with "
                                     "the prior = MODEL perturbed by --perturb)")
@@ -173,7 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
     fe.add_argument("--method", choices=("links", "init", "kinematics", "paper"),
                     help="subject: (iii) links (default), (ii) init, (iv) kinematics, (i) paper")
     fe.add_argument("--initial-pose", help="subject: text file with a rough 4x4 pose of the CT frame in the camera's "
-                                           "frame (within about 30 deg and 50 mm); default: a global registration")
+                                           "frame (within about 30 deg and 50 mm); default: a global search")
     fe.add_argument("--out", help="subject: output folder (result.json, femur.stl, tibia.stl, fem.rrd, overlay.png)")
     fe.add_argument("--flexion", type=float, help="phantom: flexion of the standard case's truth, deg (90)")
     fe.add_argument("--truth", help="phantom: parameter set generating the truth (default: MODEL)")

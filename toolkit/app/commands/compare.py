@@ -49,7 +49,7 @@ def camera_list(text: str) -> list[str]:
 
 #: The options each form of ``knee compare`` takes beyond --methods, --out, --force and --quiet (a case set
 #: carries its truths, priors, cameras and noise), and their defaults where the form takes them.
-FORM_OPTIONS = {"case set": ("only",),
+FORM_OPTIONS = {"case set": ("only", "no_initial_pose"),
                 "subject folder": ("prior", "truth_motion", "frames", "cameras", "seed", "no_noise"),
                 "parameter set": ("truth", "flexion", "cameras", "perturb", "seed", "no_noise")}
 OPTION_DEFAULTS = {"frames": 4, "flexion": "30:120:15", "cameras": "oblique", "perturb": 2.0, "seed": 3}
@@ -194,6 +194,8 @@ def run_cases(args) -> int:
         truth += f", depth noise {float(index['noise_sigma_mm_at_400_mm']):g} mm at 400 mm"
     if index.get("hole_px"):
         truth += f", holes of about {float(index['hole_px']):g} px"
+    if args.no_initial_pose:
+        truth += ", without the rough poses (the global search)"
     say(f"knee compare: case set {args.model} (seed {index.get('seed')}{truth}), {n} cases x {len(methods)} methods")
     bar = ProgressBar()
     title = f"Case set {Path(args.model).name} (seed {index.get('seed')}{truth})"
@@ -201,7 +203,7 @@ def run_cases(args) -> int:
         recorder = report.CaseSetRecorder(tmp / "compare.rrd", methods)
         try:
             rows = run_case_set(args.model, methods, None if args.quiet else (lambda i, k, t: bar(i / k, t)), select,
-                                on_result=recorder)
+                                on_result=recorder, guess=not args.no_initial_pose)
         finally:
             recorder.finish()
         try:  # what a perfect model reaches at the skin mismatches, where the set has the views to say it

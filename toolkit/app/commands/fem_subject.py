@@ -4,7 +4,7 @@ image or point cloud, with the fitted mechanism as its kinematic prior.
 
 The points are in the camera's frame and the knee's pose there is unknown: it is found from a rough
 initial pose (``--initial-pose``: the CT frame in the camera's, within about 30 deg and 50 mm) or, without
-one, by a global registration on shape features, then refined with the flexion
+one, by a global search over rotations as the camera would see the skin, then refined with the flexion
 (:func:`knee.models.prior.register_roughly`, :func:`knee.models.fem.methods.prior_method`).
 
 Outputs in OUT (written only when the run succeeds; nothing that looks like a result otherwise):
@@ -165,7 +165,7 @@ def run(args) -> int:
     built = time.perf_counter() - t0
     say(f"  grid {len(model.grid.cells)} cells, bones {len(model.femur.el.cells)} + {len(model.tibia.el.cells)} "
         f"tetrahedra; {built:.1f} s")
-    # the cloud on the model: a rough placement (initial pose or global registration), then the method
+    # the cloud on the model: a rough placement (initial pose or global search), then the method
     T_init = None if init_pose is None else invert_poses(init_pose @ T_ct_model)  # camera -> model
     t1 = time.perf_counter()
     bar = None if args.quiet else ProgressBar()

@@ -497,7 +497,7 @@ def seen_shank_points(anatomy, points_cam, T_cam_tibia) -> int:
 
 
 def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T_ct_model, stages: bool = False,
-             on_result: Callable | None = None, **options) -> tuple[CaseRow, list]:
+             on_result: Callable | None = None, guess: bool = True, **options) -> tuple[CaseRow, list]:
     """One method on one case: the depth image and the rough pose in, the bones in the camera's frame out,
     measured at the target points (ACL/PCL footprints from the prior's attachments, the epiphyses); the row,
     and with ``stages`` the errors of each stage of the method
@@ -506,7 +506,8 @@ def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T
     override). ``on_result(case, anatomy, method, points_cam, truth, estimate, row)``, when given, gets the
     depth points and the true and estimated bones' poses (``{"femur": (4, 4), "tibia": (4, 4)}``, rest model
     coordinates to the camera; the estimate's are the rigid poses the errors are taken at); for a run that
-    failed (:func:`run_case_set`) the points and poses are None."""
+    failed (:func:`run_case_set`) the points and poses are None. ``guess``: False leaves the case's rough pose
+    out (the knee found by the global search)."""
     depth = np.load(folder / case["depth"])
     fx, fy, cx, cy = case["intrinsics"]
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
@@ -516,7 +517,8 @@ def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T
     if method == "paper":  # the paper's method at its best reading (the README lists the choices)
         options = {**PAPER_AT_BEST, **options}
     t0 = time.perf_counter()
-    recon, rough = reconstruct_in_camera(model, prior, pts, invert_poses(init @ T_ct_model), method, **options)
+    recon, rough = reconstruct_in_camera(model, prior, pts, invert_poses(init @ T_ct_model) if guess else None, method,
+                                         **options)
     wall = time.perf_counter() - t0
     T_cam_world = invert_poses(rough.T_model_world)
     T_cam_femur = np.asarray(case["T_camera_femur_ct"]) @ T_ct_model
@@ -567,11 +569,13 @@ def iter_cases(folder, select: Callable[[dict], bool] | None = None):
 
 def run_case_set(folder, methods, progress: Callable[[int, int, str], None] | None = None,
                  select: Callable[[dict], bool] | None = None, on_result: Callable | None = None,
-                 **options) -> list[CaseRow]:
+                 guess: bool = True, **options) -> list[CaseRow]:
     """Every method on every case of a case set (``select``: a filter on the cases; ``on_result``: as
-    :func:`run_case`'s, called for failed runs too; ``options`` go to
-    :func:`knee.models.fem.methods.prior_method`); a run that fails is a row with its reason."""
-    return [row for row, _ in _run_all(folder, methods, progress, select, on_result=on_result, **options)]
+    :func:`run_case`'s, called for failed runs too; ``guess``: False leaves the cases' rough poses out;
+    ``options`` go to :func:`knee.models.fem.methods.prior_method`); a run that fails is a row with its
+    reason."""
+    return [row for row, _ in _run_all(folder, methods, progress, select, on_result=on_result, guess=guess,
+                                       **options)]
 
 
 def _run_all(folder, methods, progress, select, stages: bool = False, on_result: Callable | None = None,
