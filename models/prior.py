@@ -396,6 +396,8 @@ GLOBAL_DIRECTIONS, GLOBAL_SPINS = 32, 12
 #: skin (mm reach), how many starts per flexion are kept and how many are refined by ICP in all.
 GLOBAL_POINTS, GLOBAL_REACHES_MM = 200, (30.0, 30.0, 30.0)
 GLOBAL_KEEP, GLOBAL_REFINED = 6, 12
+#: How many next best matches apart from the best a global search reports (:class:`RoughRegistration`).
+GLOBAL_ALTERNATIVES = 2
 
 
 def _spread_rotations(n_directions: int = GLOBAL_DIRECTIONS, n_spins: int = GLOBAL_SPINS) -> np.ndarray:
@@ -468,6 +470,21 @@ class RoughRegistration:
     flexion: float
     inliers: float
     rms: float
+    #: from a global search: the next best matches that lie apart from this one (over 30 deg or 40 mm at the
+    #: knee), best first, for a caller that can judge them better (:func:`knee.models.fem.methods.drop_background`)
+    alternatives: list = field(default_factory=list, repr=False, compare=False)
+
+
+#: How far apart (deg, mm at the knee) two matches of a global search must lie to count as different ones.
+DISTINCT_MATCHES = (30.0, 40.0)
+
+
+def _apart(skin: SkinModel, T1, T2) -> tuple[float, float]:
+    """How far apart two placements (4, 4) are: the rotation between them (deg) and the motion of the knee's
+    centre (mm; model frame, on the femur's axis where the shank begins)."""
+    D = np.asarray(T1, float) @ invert_poses(np.asarray(T2, float))
+    c = np.array([0.0, skin.shank_below, 0.0])
+    return math.degrees(Rotation.from_matrix(D[:3, :3]).magnitude()), float(np.linalg.norm(D[:3, :3] @ c + D[:3, 3] - c))
 
 
 def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FLEXIONS_DEG,
@@ -515,15 +532,30 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
                 for reach in schedule:
                     T, _, _ = icp(pts, samples, init=T, max_distance=reach, iterations=30, target_normals=normals)
                 match = scored(T, a, pts)
+                tried.append(match)
                 if best is None or (match.inliers, -match.rms) > (best.inliers, -best.rms):
                     best = match
         return best
 
-    def search(starts_at) -> RoughRegistration:
+    tried = []
+
+    def search(starts_at, alternatives: int = 0) -> RoughRegistration:
+        tried.clear()
         best = None
         for a in cands:
             best = refined(best, a, starts_at(a))
-        return best if pts is every else scored(best.T_model_world, best.flexion, every)
+        others = []
+        for m in sorted(tried, key=lambda m: (-m.inliers, m.rms)):
+            if len(others) == alternatives:
+                break
+            if all(max(np.subtract(_apart(skin, m.T_model_world, o.T_model_world), DISTINCT_MATCHES)) > 0
+                   for o in [best] + others):
+                others.append(m)
+        if pts is not every:
+            best = scored(best.T_model_world, best.flexion, every)
+            others = [scored(m.T_model_world, m.flexion, every) for m in others]
+        best.alternatives = others
+        return best
 
     def global_starts():
         # the view-consistent starts, and those of shape features (FPFH + RANSAC, two seeds): each finds
@@ -537,7 +569,7 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
         return at
 
     if T_init is None:
-        return search(global_starts())
+        return search(global_starts(), GLOBAL_ALTERNATIVES)
     T_init = np.asarray(T_init, float)
     best = search(lambda a: [T_init])
     # how far the match lies from the guess, as the guess's own bounds are stated: a rotation, and the
@@ -548,7 +580,7 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
     moved = float(np.linalg.norm(transform_points(D, c[None])[0] - c))
     poor = local_below is not None and best.inliers < local_below
     if (turned > 2.0 * guess_within[0] or moved > 2.0 * guess_within[1]) and not poor:
-        other = search(global_starts())
+        other = search(global_starts(), GLOBAL_ALTERNATIVES)
         if (other.inliers, -other.rms) > (best.inliers, -best.rms):
             best = other
     return best

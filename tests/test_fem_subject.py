@@ -468,3 +468,46 @@ def test_the_points_near_the_skin_are_those_of_a_plain_nearest_neighbour_search(
     d = np.min([cKDTree(skin.samples(a)[0]).query(pts)[0] for a in flexions], axis=0)
     np.testing.assert_array_equal(got, d < 25.0)
     assert 0.2 < got[: len(moved)].mean() < 0.8 and got[len(moved):].any()
+
+
+def test_the_background_filter_judges_a_global_searchs_alternatives(case, monkeypatch):
+    """Where the global search's best match on a frame with its background is wrong (here: the truth turned
+    half a turn about the thigh, as a near-round leg allows) and the right one is among its alternatives,
+    the background's filter takes each through the same filter and keeps the one with the most of the
+    frame's points on the skin: the right one. Without the alternative, the wrong one stays."""
+    import knee
+    import knee.models.fem.methods as M
+    import knee.models.prior as P
+    from knee.fitting.subject import load_subject
+    from knee.fitting.subject_anatomy import subject_anatomy
+    from knee.foundations.conventions import invert_poses
+    from knee.models.fem.scene import build_knee_model
+
+    pts = np.asarray(o3d.io.read_point_cloud(str(case["tmp"] / "cloud.ply")).points)
+    T_cam_model = case["T_cam_ct"] @ case["frames"]["femur"]
+    g = np.random.default_rng(1).uniform(-400.0, 400.0, size=(60000, 2))
+    table = np.column_stack([np.full(len(g), -90.0), g]) @ T_cam_model[:3, :3].T + T_cam_model[:3, 3]
+    frame = np.vstack([pts, table])
+    prior = knee.Mechanism(knee.load_model(case["tmp"] / "prior.toml"))
+    model = build_knee_model(subject_anatomy(load_subject(case["dir"]), prior.params), prior=prior)
+    skin = M.skin_model(model, prior)
+    right = invert_poses(T_cam_model)  # camera -> model
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec([0.0, math.pi, 0.0]).as_matrix()  # half a turn about the thigh's axis
+    wrong = turn @ right
+    a = math.radians(45.0)
+    original = P.register_roughly
+
+    def placed(alternatives):
+        def fake(sk, points, T_init=None, **k):
+            if T_init is None:  # the global search on what the plane leaves
+                return P.RoughRegistration(wrong, a, 0.5, 5.0, alternatives=[P.RoughRegistration(T, a, 0.4, 6.0)
+                                                                               for T in alternatives])
+            return original(sk, points, T_init, guess_within=(1e9, 1e9), **k)
+        monkeypatch.setattr(M, "register_roughly", fake)
+        _, best, dropped = M.drop_background(skin, frame, None)
+        assert dropped > len(table) // 2
+        return math.degrees(Rotation.from_matrix(best.T_model_world[:3, :3] @ right[:3, :3].T).magnitude())
+
+    assert placed([right]) < 10.0
+    assert placed([]) > 90.0

@@ -437,6 +437,13 @@ def test_the_global_search_finds_the_knee_from_any_side(volunteer):
         rot = math.degrees(math.acos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
         shift = float(np.linalg.norm(transform_points(T, pts) - pts, axis=1).mean())
         assert rot < 10.0 and shift < 15.0, (az, rot, shift)
+        # its next best matches, for a caller that can judge them better: apart from it and from each other
+        # (over 30 deg or 40 mm at the knee), holding no more of the points
+        assert 0 < len(r.alternatives) <= P.GLOBAL_ALTERNATIVES
+        for i, m in enumerate(r.alternatives):
+            assert m.inliers <= r.inliers
+            for o in [r] + r.alternatives[:i]:
+                assert max(np.subtract(P._apart(sk, m.T_model_world, o.T_model_world), P.DISTINCT_MATCHES)) > 0
 
 
 def test_rough_registration_searches_a_large_cloud_with_a_subsample(volunteer, scene, monkeypatch):

@@ -1205,16 +1205,29 @@ def drop_background(skin: SkinModel, points_cam, rough, T_init=None, rounds: int
     keep = ~(dominant_planes(points_cam, VOXEL_MM, max_planes=1) if plane is None else np.asarray(plane, bool))
     if keep.sum() < MIN_POINTS:
         return points_cam, rough, 0
-    best = rough if keep.all() else register_roughly(skin, points_cam[keep], T_init)
-    for _ in range(rounds):
-        idx = np.nonzero(keep)[0]
-        flexions = sorted({float(np.clip(best.flexion + math.radians(k), lo, hi)) for k in BACKGROUND_FLEXIONS_DEG})
-        near = np.zeros(len(keep), bool)
-        near[idx[near_skin(skin, transform_points(best.T_model_world, points_cam[idx]), flexions)]] = True
-        if near.sum() < MIN_POINTS:
-            break
-        keep = near
-        best = register_roughly(skin, points_cam[keep], best.T_model_world)
+    first = rough if keep.all() else register_roughly(skin, points_cam[keep], T_init)
+    off_plane = keep
+
+    def filtered(best):
+        keep = off_plane
+        for _ in range(rounds):
+            idx = np.nonzero(keep)[0]
+            flexions = sorted({float(np.clip(best.flexion + math.radians(k), lo, hi)) for k in BACKGROUND_FLEXIONS_DEG})
+            near = np.zeros(len(keep), bool)
+            near[idx[near_skin(skin, transform_points(best.T_model_world, points_cam[idx]), flexions)]] = True
+            if near.sum() < MIN_POINTS:
+                break
+            keep = near
+            best = register_roughly(skin, points_cam[keep], best.T_model_world)
+        # judged on the same points for every start: the share of all the points off the plane on the skin
+        d, _ = skin.samples(best.flexion)[2].query(transform_points(best.T_model_world, points_cam[off_plane]))
+        return int(np.count_nonzero(d < 5.0)), keep, best
+
+    # a global search's next best matches apart from its best go through the same filter: with the background
+    # that is left, a match turned over can hold more points than the right one until the filter leaves that
+    # background out (measured: a synthetic frame with a table, turned over 0.734 of its kept points on the
+    # skin, the right way round 0.764)
+    _, keep, best = max((filtered(m) for m in [first] + list(first.alternatives)), key=lambda r: r[0])
     if keep.all():
         return points_cam, rough, 0
     return points_cam[keep], best, int(len(keep) - keep.sum())
