@@ -229,7 +229,8 @@ def test_a_diverging_surface_phase_falls_back_to_the_initialisation(model, volun
     monkeypatch.setattr(fm, "surface_phase", blow_up)  # initialisation starts from the model's state
     r = fm.prior_method("init", build_association_model(volunteer), volunteer, pts)
     assert any("surface phase diverged" in n for n in r.notes) and not r.converged and r.steps == 9
-    np.testing.assert_allclose(r.grid_x, ref.grid_x, atol=1e-2)  # the iterative solves (timing-adaptive refreshes)
+    np.testing.assert_allclose(r.grid_x, ref.grid_x, atol=0.05)  # the iterative solves (timing-adaptive refreshes;
+    # 0.0104 mm measured on a loaded machine; a blow-up left in would be 1000 mm)
     assert abs(r.flexion_deg - ref.flexion_deg) < 1e-3
 
 
@@ -642,7 +643,7 @@ def test_a_model_runs_each_method_from_its_state_as_built(volunteer, monkeypatch
     fm.prior_method("init", model, volunteer, pts90)
     assert model.inverted_at_init > 0 or model.isolated_at_init > 0 or model.tethers is not None
     again = fm.prior_method("init", model, volunteer, pts60)
-    np.testing.assert_allclose(again.grid_x, fresh.grid_x, atol=1e-2)
+    np.testing.assert_allclose(again.grid_x, fresh.grid_x, atol=0.05)  # (53 mm apart without the reset)
     assert abs(again.flexion_deg - fresh.flexion_deg) < 1e-3
 
     grid, anatomy = model.grid, model.anatomy
