@@ -18,6 +18,7 @@ Frames: the point cloud and every pose are in one world frame; the model's femur
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -400,6 +401,7 @@ GLOBAL_KEEP, GLOBAL_REFINED = 6, 12
 GLOBAL_ALTERNATIVES = 2
 
 
+@functools.lru_cache(maxsize=4)
 def _spread_rotations(n_directions: int = GLOBAL_DIRECTIONS, n_spins: int = GLOBAL_SPINS) -> np.ndarray:
     """Rotations (n, 3, 3) spread over all of them: z taken to each of ``n_directions`` directions on a
     Fibonacci sphere, then turned about it in ``n_spins`` equal steps."""
@@ -415,7 +417,9 @@ def _spread_rotations(n_directions: int = GLOBAL_DIRECTIONS, n_spins: int = GLOB
             Rotation.from_rotvec([math.pi, 0.0, 0.0] if u[2] < 0 else [0.0, 0.0, 0.0])
         spins = Rotation.from_rotvec(np.outer(np.arange(n_spins) * 2.0 * math.pi / n_spins, u))
         out.append((spins * base).as_matrix())
-    return np.concatenate(out)
+    R = np.concatenate(out)
+    R.flags.writeable = False  # cached: shared by every search
+    return R
 
 
 def view_starts(skin: SkinModel, points, flexions, viewpoint=(0.0, 0.0, 0.0)) -> list[tuple[float, float, np.ndarray]]:
@@ -424,8 +428,8 @@ def view_starts(skin: SkinModel, points, flexions, viewpoint=(0.0, 0.0, 0.0)) ->
     ``flexions`` (rad) without any guess of its pose. For each of the spread rotations
     (:func:`_spread_rotations`) the camera's line of sight to the cloud is turned into the model; the cloud's
     centre goes to the centre of the skin samples that face that line (what such a camera sees), then moves
-    onto the skin by :data:`GLOBAL_STEPS` mean shifts of :data:`GLOBAL_POINTS` of its points towards their
-    nearest samples within :data:`GLOBAL_REACH_MM`; the share of those points within 8 mm scores it.
+    onto the skin by one mean shift of :data:`GLOBAL_POINTS` of its points towards their nearest samples
+    per reach of :data:`GLOBAL_REACHES_MM`; the share of those points within 8 mm scores it.
     Vectorised over the rotations. Returns the :data:`GLOBAL_KEEP` best per flexion as (score, flexion,
     T (4, 4) cloud to model), best first. Measured on the honest benchmark's seed 0, without the rough poses
     (the rough registration alone, its match within 30 deg and 40 mm at the knee of the true femur's): shape
@@ -479,7 +483,7 @@ class RoughRegistration:
 DISTINCT_MATCHES = (30.0, 40.0)
 
 
-def _apart(skin: SkinModel, T1, T2) -> tuple[float, float]:
+def placements_apart(skin: SkinModel, T1, T2) -> tuple[float, float]:
     """How far apart two placements (4, 4) are: the rotation between them (deg) and the motion of the knee's
     centre (mm; model frame, on the femur's axis where the shank begins)."""
     D = np.asarray(T1, float) @ invert_poses(np.asarray(T2, float))
@@ -548,7 +552,7 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
         for m in sorted(tried, key=lambda m: (-m.inliers, m.rms)):
             if len(others) == alternatives:
                 break
-            if all(max(np.subtract(_apart(skin, m.T_model_world, o.T_model_world), DISTINCT_MATCHES)) > 0
+            if all(max(np.subtract(placements_apart(skin, m.T_model_world, o.T_model_world), DISTINCT_MATCHES)) > 0
                    for o in [best] + others):
                 others.append(m)
         if pts is not every:
@@ -574,10 +578,7 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
     best = search(lambda a: [T_init])
     # how far the match lies from the guess, as the guess's own bounds are stated: a rotation, and the
     # motion of the knee's centre (model frame: on the femur's axis at the joint line, where the shank begins)
-    D = best.T_model_world @ invert_poses(T_init)
-    c = np.array([0.0, skin.shank_below, 0.0])
-    turned = math.degrees(Rotation.from_matrix(D[:3, :3]).magnitude())
-    moved = float(np.linalg.norm(transform_points(D, c[None])[0] - c))
+    turned, moved = placements_apart(skin, best.T_model_world, T_init)
     poor = local_below is not None and best.inliers < local_below
     if (turned > 2.0 * guess_within[0] or moved > 2.0 * guess_within[1]) and not poor:
         other = search(global_starts(), GLOBAL_ALTERNATIVES)

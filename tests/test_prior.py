@@ -443,7 +443,7 @@ def test_the_global_search_finds_the_knee_from_any_side(volunteer):
         for i, m in enumerate(r.alternatives):
             assert m.inliers <= r.inliers
             for o in [r] + r.alternatives[:i]:
-                assert max(np.subtract(P._apart(sk, m.T_model_world, o.T_model_world), P.DISTINCT_MATCHES)) > 0
+                assert max(np.subtract(P.placements_apart(sk, m.T_model_world, o.T_model_world), P.DISTINCT_MATCHES)) > 0
 
 
 def test_rough_registration_searches_a_large_cloud_with_a_subsample(volunteer, scene, monkeypatch):

@@ -496,6 +496,13 @@ def seen_shank_points(anatomy, points_cam, T_cam_tibia) -> int:
     return int(np.count_nonzero(local[:, 1] < anatomy.joint_y - SHANK_BELOW_WIDTHS * anatomy.width))
 
 
+def case_points_cam(folder: Path, case: dict) -> np.ndarray:
+    """A case's depth points (P, 3), mm, in its camera's frame, as a measured image's (mixed pixels left out)."""
+    fx, fy, cx, cy = case["intrinsics"]
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return backproject(np.load(Path(folder) / case["depth"]).astype(float), K, drop_mixed=True)
+
+
 def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T_ct_model, stages: bool = False,
              on_result: Callable | None = None, guess: bool = True, **options) -> tuple[CaseRow, list]:
     """One method on one case: the depth image and the rough pose in, the bones in the camera's frame out,
@@ -508,10 +515,7 @@ def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T
     coordinates to the camera; the estimate's are the rigid poses the errors are taken at); for a run that
     failed (:func:`run_case_set`) the points and poses are None. ``guess``: False leaves the case's rough pose
     out (the knee found by the global search)."""
-    depth = np.load(folder / case["depth"])
-    fx, fy, cx, cy = case["intrinsics"]
-    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    pts = backproject(depth.astype(float), K, drop_mixed=True)  # as a measured image's
+    pts = case_points_cam(folder, case)
     init = np.loadtxt(folder / case["initial_pose"]).reshape(4, 4)
     model = build_knee_model(anatomy, prior=prior)
     if method == "paper":  # the paper's method at its best reading (the README lists the choices)

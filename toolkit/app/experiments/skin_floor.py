@@ -29,11 +29,11 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from knee.app.experiments.case_set import iter_cases, read_case_set
+from knee.app.experiments.case_set import case_points_cam, iter_cases, read_case_set
 from knee.app.experiments.subject_cases import anatomy_targets
 from knee.foundations.conventions import invert_poses, matrix_to_cardan, pose_to_joint, transform_points
 from knee.foundations.errors import KneeInputError
-from knee.foundations.pointclouds import backproject, icp, voxel_downsample
+from knee.foundations.pointclouds import icp, voxel_downsample
 from knee.models.evaluation import pose_errors
 from knee.models.fem.methods import initialise_from_prior, quasi_static, register_to_posed_skin, tibia_path
 from knee.models.fem.scene import build_knee_model
@@ -71,9 +71,7 @@ class SkinFloorRow:
 
 
 def _cloud(folder: Path, case: dict) -> np.ndarray:
-    fx, fy, cx, cy = case["intrinsics"]
-    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    return voxel_downsample(backproject(np.load(folder / case["depth"]).astype(float), K, drop_mixed=True), VOXEL_MM)
+    return voxel_downsample(case_points_cam(folder, case), VOXEL_MM)
 
 
 def _register(points, clean, T_cam_bone) -> np.ndarray:
