@@ -324,6 +324,24 @@ def test_dominant_planes_are_a_tables_not_a_legs():
     assert dominant_planes(table).all() and not dominant_planes(table[:2]).any()  # a plane alone; too few points
 
 
+def test_connected_parts_split_a_cloud_where_it_has_gaps():
+    """Two cylinders (legs) 60 mm apart between surfaces, one with more points: two pieces, the larger
+    labelled 0; a line of points bridging them, each within the gap of the next, joins them into one; a
+    point off on its own is a piece of its own. Labels checked against the points' known origin."""
+    from knee.foundations.pointclouds import connected_parts
+
+    def leg(length, x):  # points 5 mm apart on a cylinder of 60 mm radius
+        t, y = np.meshgrid(np.linspace(0, 2 * np.pi, 76)[:-1], np.arange(0.0, length + 1e-9, 5.0))
+        return np.column_stack([x + 60.0 * np.cos(t.ravel()), y.ravel(), 400.0 + 60.0 * np.sin(t.ravel())])
+
+    a, b = leg(200.0, 0.0), leg(300.0, 180.0)
+    lab = connected_parts(np.vstack([a, b]), 10.0)
+    assert set(lab[:len(a)]) == {1} and set(lab[len(a):]) == {0}
+    bridge = np.column_stack([np.linspace(60.0, 120.0, 13), np.zeros(13), np.full(13, 400.0)])  # 5 mm apart
+    lone = np.array([[0.0, 500.0, 400.0]])
+    lab = connected_parts(np.vstack([a, b, bridge, lone]), 10.0)
+    assert set(lab[:-1]) == {0} and lab[-1] == 1
+
 @pytest.fixture(scope="module")
 def flying_scene(knee_like):
     """The knee seen by a depth camera with its noise and dropout, a wall 300 mm behind it, and flying pixels:

@@ -401,6 +401,12 @@ def test_a_whole_frame_leaves_out_its_background_before_any_global_search(case, 
     assert abs(flexion - math.degrees(case["tf"][0])) < 2.0 and turned < 3.0
     assert any("left out as background" in n for n in notes)
     assert sizes and all(s < P.ROUGH_MAX_POINTS for s in sizes), sizes
+    assert not any("another place" in n for n in notes)
+    # a second leg on the table beside it (250 mm across): without a guess nothing says which knee is meant,
+    # and the result says so
+    frame = np.vstack([frame, pts + T_cam_model[:3, :3] @ np.array([0.0, 0.0, 250.0])])
+    _, _, notes = found(None)
+    assert any("another place in the frame matches the knee's skin" in n for n in notes), notes
 
 
 def test_a_whole_frames_first_look_finds_a_leg_that_holds_most_of_it(case):

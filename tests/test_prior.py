@@ -446,6 +446,29 @@ def test_the_global_search_finds_the_knee_from_any_side(volunteer):
                 assert max(np.subtract(P.placements_apart(sk, m.T_model_world, o.T_model_world), P.DISTINCT_MATCHES)) > 0
 
 
+def test_the_global_search_looks_again_between_its_candidate_flexions(volunteer):
+    """A knee flexed halfway between two of the search's candidate flexions (30 deg, between 15 and 45): the
+    global search's best matches are looked at again halfway to the neighbouring candidates, so its match
+    is the skin at 30 deg, holding more of the points than the best match at either candidate (there a view
+    can hold as many points turned over as the right way round)."""
+    import knee.models.prior as P
+
+    ph = build_phantom(volunteer.params)
+    tf, pf, _ = volunteer.solve(math.radians(30.0))
+    skin = ph.skin(joint_to_pose(tf), joint_to_pose(pf))
+    sk = SkinModel(volunteer, ph)
+    cam = default_camera()
+    pts = backproject(DepthNoise().apply(render_depth(skin.vertices, skin.faces, cam), np.random.default_rng(2)),
+                      cam.K, cam.T_world_cam)
+    r = P.register_roughly(sk, pts, viewpoint=cam.T_world_cam[:3, 3])
+    assert math.degrees(r.flexion) == pytest.approx(30.0, abs=1e-6)
+    at_candidates = P.register_roughly(sk, pts, r.T_model_world, flexions_deg=(15.0, 45.0))
+    assert r.inliers > at_candidates.inliers + 0.05, (r.inliers, at_candidates.inliers)
+    T = r.T_model_world
+    rot = math.degrees(math.acos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+    assert rot < 5.0 and float(np.linalg.norm(transform_points(T, pts) - pts, axis=1).mean()) < 5.0
+
+
 def test_rough_registration_searches_a_large_cloud_with_a_subsample(volunteer, scene, monkeypatch):
     """A cloud over the search's point budget (here lowered to a third of the scene's thinned points, as a
     frame with a table is over the default) is searched with a subsample of that many: the

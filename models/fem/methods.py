@@ -73,7 +73,10 @@ from knee.models.fem.mapping import TrilinearMapping
 from knee.models.fem.scene import AssociationModel, bone_cell_masks, knee_angles
 from knee.models.mechanism.solver import Mechanism
 from knee.models.prior import (
+    MIN_SEEN_SHANK,
     ROUGH_MAX_POINTS,
+    SHANK,
+    THIGH,
     VOXEL_MM,
     FlexionEstimate,
     SkinModel,
@@ -82,6 +85,7 @@ from knee.models.prior import (
     correct_tibia,
     estimate_flexion,
     register_roughly,
+    seen_part_points,
     small_pose,
 )
 
@@ -1126,6 +1130,7 @@ def reconstruct_in_camera(model: AssociationModel, prior: Mechanism, points_cam,
     whole = len(thinned) > ROUGH_MAX_POINTS  # a whole frame
     plane = dominant_planes(every, VOXEL_MM, share=WHOLE_FRAME_PLANE_SHARE, max_planes=1) if whole and T_init is None \
         else np.zeros(len(every), bool)
+    other = None
     if plane.any():
         # a whole frame without a guess, half of it on one plane: taken for background before any global
         # search (slow on a whole frame, and mostly matching the plane); the whole frame placed only where
@@ -1133,6 +1138,8 @@ def reconstruct_in_camera(model: AssociationModel, prior: Mechanism, points_cam,
         points_cam, rough, dropped = drop_background(skin, every, None, plane=plane)
         if rough is None or rough.inliers < MIN_REGISTERED:
             points_cam, rough, dropped = _placed(skin, every, None)
+        else:
+            other = another_knee(skin, every[~plane], rough)
     elif whole and T_init is not None:
         # a first look with a few of the points: is most of the frame background? (the thinned points
         # searched: thinning them again is the identity)
@@ -1155,7 +1162,39 @@ def reconstruct_in_camera(model: AssociationModel, prior: Mechanism, points_cam,
         recon.notes.insert(0, f"{dropped} of the {dropped + len(points_cam)} points were left out as background (a "
                               f"table, a wall, the other leg): on a dominant plane, or over {BACKGROUND_MM:g} mm from "
                               "the knee's skin once placed")
+    if other is not None:
+        held, other_held = other
+        recon.notes.insert(0, f"another place in the frame matches the knee's skin, thigh and shank ({other_held} points "
+                              f"on it, against {held} on the knee placed): it may be the other leg; a rough initial "
+                              "pose (knee fem --initial-pose) says which knee is meant")
     return recon, rough
+
+
+def another_knee(skin: SkinModel, points_cam, rough) -> tuple[int, int] | None:
+    """Whether a frame's points (P, 3; camera frame, its dominant plane left out) hold a second knee beside
+    the one ``rough`` placed: the points within :data:`BACKGROUND_MM` of the skin posed near the match's
+    flexion are left out and the rest searched globally; a match there holding :data:`MIN_REGISTERED` of
+    them within 5 mm, with at least :data:`knee.models.prior.MIN_SEEN_SHANK` of them on the thigh's own skin
+    and as many on the shank's (a leg with its knee, not a stretch of the same leg beyond the skin model),
+    is another knee. Without a rough pose nothing says which is meant: the placement keeps the one with more
+    points on the skin. Returns (points on the skin at the knee placed, at the other; thinned to
+    :data:`VOXEL_MM`), or None."""
+    points_cam = np.asarray(points_cam, float)
+    lo, hi = skin.mech.assembly_range
+    flexions = sorted({float(np.clip(rough.flexion + math.radians(k), lo, hi)) for k in BACKGROUND_FLEXIONS_DEG})
+    rest = points_cam[~near_skin(skin, transform_points(rough.T_model_world, points_cam), flexions)]
+    if len(rest) < MIN_POINTS:
+        return None
+    second = register_roughly(skin, rest)
+    if second.inliers < MIN_REGISTERED:
+        return None
+    posed = skin.at(second.flexion)
+    thinned = transform_points(second.T_model_world, voxel_downsample(rest, VOXEL_MM))
+    if min(seen_part_points(posed, thinned, part) for part in (THIGH, SHANK)) < MIN_SEEN_SHANK:
+        return None
+    mine = transform_points(rough.T_model_world, voxel_downsample(points_cam, VOXEL_MM))
+    held = int(np.count_nonzero(skin.samples(rough.flexion)[2].query(mine)[0] < 5.0))
+    return held, int(round(second.inliers * len(thinned)))
 
 
 def _placed(skin: SkinModel, points_cam, T_init, **search):

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -208,6 +210,19 @@ def dominant_planes(points, voxel: float = 4.0, share: float = 0.3, max_planes: 
     return on
 
 
+def connected_parts(points, gap: float) -> np.ndarray:
+    """The cloud's separate pieces: points (P, 3) joined where they lie within ``gap`` of each other (in
+    any chain). Returns labels (P,) int, 0 for the piece with the most points, 1 for the next, and so on."""
+    p = np.asarray(points, float)
+    pairs = cKDTree(p).query_pairs(gap, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs), bool), (pairs[:, 0], pairs[:, 1])), shape=(len(p), len(p)))
+    _, labels = connected_components(graph, directed=False)
+    order = np.argsort(-np.bincount(labels), kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return rank[labels]
+
+
 def voxel_downsample(points, voxel: float) -> np.ndarray:
     """One point (the mean) per occupied voxel, vectorised (the voxel's three indices packed into one
     integer key, so the grouping is a 1-D unique)."""
@@ -295,33 +310,3 @@ def icp_held(source_points, target_points, target_normals, free=(True,) * 6, piv
         if np.abs(x).max() < tolerance:
             break
     return T, fitness
-
-
-def global_register(source_points, target_points, voxel: float = 6.0, target_normals=None, seed: int = 0,
-                    max_iterations: int = 100000) -> tuple[np.ndarray, float]:
-    """A rigid transform (4, 4) of ``source_points`` onto ``target_points`` found without an initial
-    guess: RANSAC over correspondences of FPFH shape features (open3d), both clouds thinned to ``voxel``
-    mm; returns it and its fitness (the fraction of source points within 1.5 voxels of the target). A
-    start for :func:`icp`, not a final answer."""
-    def prepared(points, normals=None):
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, float)))
-        if normals is not None:
-            pc.normals = o3d.utility.Vector3dVector(np.asarray(normals, float))
-        pc = pc.voxel_down_sample(voxel)
-        if normals is None or not pc.has_normals():
-            pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel, max_nn=30))
-        feat = o3d.pipelines.registration.compute_fpfh_feature(
-            pc, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel, max_nn=100))
-        return pc, feat
-
-    src, fs = prepared(source_points)
-    dst, fd = prepared(target_points, target_normals)
-    o3d.utility.random.seed(seed)
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):  # no warnings on stdout
-        reg = o3d.pipelines.registration.registration_ransac_based_on_feature_matching(
-            src, dst, fs, fd, True, 1.5 * voxel,
-            o3d.pipelines.registration.TransformationEstimationPointToPoint(False), 3,
-            [o3d.pipelines.registration.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-             o3d.pipelines.registration.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
-            o3d.pipelines.registration.RANSACConvergenceCriteria(max_iterations, 0.999))
-    return np.asarray(reg.transformation), float(reg.fitness)
