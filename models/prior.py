@@ -465,11 +465,11 @@ def view_starts(skin: SkinModel, points, flexions, viewpoint=(0.0, 0.0, 0.0)) ->
         seen = np.maximum(facing.sum(axis=0), 1)[:, None]
         X = local + ((facing.T.astype(float) @ samples) / seen)[:, None, :]
         for reach in GLOBAL_REACHES_MM:
-            d, j = tree.query(X.reshape(-1, 3), distance_upper_bound=reach)
+            d, j = tree.query(X.reshape(-1, 3), distance_upper_bound=reach, workers=-1)
             near = np.isfinite(d).reshape(X.shape[:2])
             pull = np.where(near[..., None], samples[np.where(near, j.reshape(X.shape[:2]), 0)] - X, 0.0)
             X = X + (pull.sum(axis=1) / np.maximum(near.sum(axis=1), 1)[:, None])[:, None, :]
-        d, _ = tree.query(X.reshape(-1, 3))
+        d, _ = tree.query(X.reshape(-1, 3), workers=-1)
         score = np.mean(d.reshape(X.shape[:2]) < 8.0, axis=1)
         t = X.mean(axis=1) - R @ centre
         for k in np.argsort(-score, kind="stable")[:GLOBAL_KEEP]:
