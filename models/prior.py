@@ -515,27 +515,29 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
     50 mm), or, without one, from a global search: rotations spread over all of them as a camera at
     ``viewpoint`` (the origin of a depth image's points) would see the skin (:func:`view_starts`, the best
     :data:`GLOBAL_REFINED` refined; a cloud in separate pieces, as two legs or a leg and a box are, searched
-    also from each large piece, its starts refined with its own points: :data:`PIECE_GAP_MM`). Against the prior's skin posed at a few flexions (within the prior's
-    range), each start is refined by ICP with each schedule of shrinking reaches in ``reaches_mm``
-    (:data:`ROUGH_REACHES_MM`; a global search's starts with the first, the widest, only); the best match
-    (most points within 5 mm, then the lowest RMS) wins. A global search looks at its best distinct matches
-    again at the flexions halfway to the neighbouring candidates (refined with the last schedule), each
-    judged at its best (a view can hold as many points turned over as the right way round at a candidate
-    flexion 15 deg off its own). Measured on the honest benchmark's seed 0 without the rough poses (60
-    views): the knee found in 59 of them by the starts refined with both schedules, as by these with the
-    wide one alone, 60 with the second look; shape features (FPFH + RANSAC, an earlier search) found 45,
-    and added none to these starts. Where the best match from ``T_init`` lies further from it than twice what the guess
-    allows (the knee's centre moved more than twice the mm, or turned more than twice the deg: a right
-    match can lie beyond the guess's bounds by the rough match's own error, the candidate flexions being 30
-    deg apart), the ICP has left the guess's basin and the global search is tried as well,
-    the better match kept (measured on the honest benchmark: a
-    lateral view of the phantom at 45 deg, its guess 24 deg and 44 mm off, matched the skin at 15 deg
-    flexion 122 mm away with 53 % of the points; the global starts found 86 %, 4 mm from the truth).
-    A cloud of more than ``max_points`` (:data:`ROUGH_MAX_POINTS` unless given; after 4 mm voxels) is
-    searched with a subsample of that many; the match it finds is scored on all of them. ``local_below``: where the match from ``T_init``
-    holds fewer than this share of the points within 5 mm, it is returned without the global starts (a
-    caller that first leaves out the background, then tries them). Raises :class:`KneeInputError` when the
-    cloud is too small."""
+    also from each large piece, its starts refined with its own points: :data:`PIECE_GAP_MM`).
+
+    Against the prior's skin posed at a few flexions (within the prior's range), each start is refined by
+    ICP with each schedule of shrinking reaches in ``reaches_mm`` (:data:`ROUGH_REACHES_MM`; a global
+    search's starts with the first, the widest, only); the best match (most points within 5 mm, then the
+    lowest RMS) wins. A global search follows its best distinct matches :data:`FOLLOW_STEPS` steps of 15 deg
+    either side in flexion (refined with the last schedule), each judged at its best: a view can hold as
+    many points turned over as the right way round at a candidate flexion 15 deg off its own. Measured on
+    the honest benchmark's seed 0 without the rough poses (60 views): the knee found in 59 of them by the
+    starts refined with both schedules, as by these with the wide one alone, in all 60 once followed;
+    shape features (FPFH + RANSAC, an earlier search) found 45 and added none to these starts.
+
+    Where the best match from ``T_init`` lies further from it than twice what the guess allows (the knee's
+    centre moved more than twice the mm, or turned more than twice the deg: a right match can lie beyond the
+    guess's bounds by the rough match's own error, the candidate flexions being 30 deg apart), the ICP has
+    left the guess's basin and the global search is tried as well, the better match kept (measured on the
+    honest benchmark: a lateral view of the phantom at 45 deg, its guess 24 deg and 44 mm off, matched the
+    skin at 15 deg flexion 122 mm away with 53 % of the points; the global starts found 86 %, 4 mm from the
+    truth). A cloud of more than ``max_points`` (:data:`ROUGH_MAX_POINTS` unless given; after 4 mm voxels)
+    is searched with a subsample of that many; the match it finds is scored on all of them.
+    ``local_below``: where the match from ``T_init`` holds fewer than this share of the points within 5 mm,
+    it is returned without the global starts (a caller that first leaves out the background, then tries
+    them). Raises :class:`KneeInputError` when the cloud is too small."""
     every = voxel_downsample(_checked_cloud(points), VOXEL_MM)
     pts = every
     budget = ROUGH_MAX_POINTS if max_points is None else int(max_points)
@@ -549,22 +551,18 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
         trimmed = np.sort(d)[: max(1, int(0.9 * d.size))]
         return RoughRegistration(T, a, float(np.mean(d < 5.0)), float(np.sqrt(np.mean(trimmed ** 2))))
 
-    def refined(best, a, starts, schedules):
+    def refined(a, starts, schedules) -> list[RoughRegistration]:
         # each start a transform, refined with all the points, or (transform, the points to refine it with)
         samples, normals, _ = skin.samples(a)
+        out = []
         for start in starts:
             T0, src = start if isinstance(start, tuple) else (start, pts)
             for schedule in schedules:
                 T = T0
                 for reach in schedule:
                     T, _, _ = icp(src, samples, init=T, max_distance=reach, iterations=30, target_normals=normals)
-                match = scored(T, a, pts)
-                tried.append(match)
-                if best is None or (match.inliers, -match.rms) > (best.inliers, -best.rms):
-                    best = match
-        return best
-
-    tried = []
+                out.append(scored(T, a, pts))
+        return out
 
     def distinct(matches, n):
         # the best n matches apart from each other (DISTINCT_MATCHES), best first
@@ -580,26 +578,20 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
     def followed(m, step):
         # the match refined at the flexions up to FOLLOW_STEPS steps either side, each from the last (the last
         # schedule), and judged at its best
-        def at(a, T):
-            tried.clear()
-            refined(None, a, [T], reaches_mm[-1:])
-            return tried[0]
         best = m
         for sign in (-1.0, 1.0):
             cur = m
             for _ in range(FOLLOW_STEPS):
                 if not lo < cur.flexion + sign * step * 0.5 < hi:
                     break
-                cur = at(float(np.clip(cur.flexion + sign * step, lo, hi)), cur.T_model_world)
+                a = float(np.clip(cur.flexion + sign * step, lo, hi))
+                cur = refined(a, [cur.T_model_world], reaches_mm[-1:])[0]
                 if (cur.inliers, -cur.rms) > (best.inliers, -best.rms):
                     best = cur
         return best
 
     def search(starts_at, alternatives: int = 0, schedules=reaches_mm, examine: bool = False) -> RoughRegistration:
-        tried.clear()
-        for a in cands:
-            refined(None, a, starts_at(a), schedules)
-        top = distinct(tried, 1 + alternatives)
+        top = distinct([m for a in cands for m in refined(a, starts_at(a), schedules)], 1 + alternatives)
         if examine and len(cands) > 1:
             # each distinct match followed in flexion, in steps of half the candidates' spacing, and judged at
             # its best: the candidates lie 30 deg apart, and a view of a knee flexed

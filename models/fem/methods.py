@@ -1164,9 +1164,9 @@ def reconstruct_in_camera(model: AssociationModel, prior: Mechanism, points_cam,
                               "the knee's skin once placed")
     if other is not None:
         held, other_held = other
-        recon.notes.insert(0, f"another place in the frame matches the knee's skin, thigh and shank ({other_held} points "
-                              f"on it, against {held} on the knee placed): it may be the other leg; a rough initial "
-                              "pose (knee fem --initial-pose) says which knee is meant")
+        recon.notes.insert(0, f"another place in the frame matches the knee's skin, thigh and shank ({other_held} "
+                              f"points on it, against {held} on the knee placed): it may be the other leg; a rough "
+                              "initial pose (knee fem --initial-pose) says which knee is meant")
     return recon, rough
 
 
