@@ -446,6 +446,28 @@ def test_the_global_search_finds_the_knee_from_any_side(volunteer):
                 assert max(np.subtract(P.placements_apart(sk, m.T_model_world, o.T_model_world), P.DISTINCT_MATCHES)) > 0
 
 
+def test_the_global_searchs_starts_keep_their_best_when_pruned(volunteer, monkeypatch):
+    """The starts' rotations are pruned to the share nearest the skin after their first mean shift
+    (:data:`GLOBAL_PRUNED`): on a view of the phantom at 40 deg the best start at each candidate flexion is the
+    one all the rotations give (the same rotation and score)."""
+    import knee.models.prior as P
+
+    ph = build_phantom(volunteer.params)
+    tf, pf, _ = volunteer.solve(math.radians(40.0))
+    skin = ph.skin(joint_to_pose(tf), joint_to_pose(pf))
+    sk = SkinModel(volunteer, ph)
+    cam = default_camera()
+    pts = backproject(DepthNoise().apply(render_depth(skin.vertices, skin.faces, cam), np.random.default_rng(3)),
+                      cam.K, cam.T_world_cam)
+    flexions = [math.radians(d) for d in P.ROUGH_FLEXIONS_DEG]
+    pruned = P.view_starts(sk, pts, flexions, cam.T_world_cam[:3, 3])
+    monkeypatch.setattr(P, "GLOBAL_PRUNED", 1.0)
+    every = P.view_starts(sk, pts, flexions, cam.T_world_cam[:3, 3])
+    for a in flexions:
+        (s1, _, T1), (s2, _, T2) = [next(c for c in starts if c[1] == a) for starts in (pruned, every)]
+        assert s1 == s2 and np.allclose(T1[:3, :3], T2[:3, :3]), math.degrees(a)
+
+
 def test_the_global_search_looks_again_between_its_candidate_flexions(volunteer):
     """A knee flexed halfway between two of the search's candidate flexions (30 deg, between 15 and 45): the
     global search's best matches are looked at again halfway to the neighbouring candidates, so its match
