@@ -417,6 +417,18 @@ def test_rough_registration_tries_the_global_starts_where_the_guess_led_it_astra
     assert calls
 
 
+def _phantom_view(volunteer, flexion_deg: float, seed: int, azimuth_deg: float = 0.0):
+    """The phantom's skin posed by the volunteer at ``flexion_deg`` seen by the default camera (at
+    ``azimuth_deg``) with its noise: (the skin model, the points in the model frame, the camera)."""
+    ph = build_phantom(volunteer.params)
+    tf, pf, _ = volunteer.solve(math.radians(flexion_deg))
+    skin = ph.skin(joint_to_pose(tf), joint_to_pose(pf))
+    cam = default_camera(azimuth_deg=azimuth_deg)
+    pts = backproject(DepthNoise().apply(render_depth(skin.vertices, skin.faces, cam), np.random.default_rng(seed)),
+                      cam.K, cam.T_world_cam)
+    return SkinModel(volunteer, ph), pts, cam
+
+
 def test_the_global_search_finds_the_knee_from_any_side(volunteer):
     """Without a guess, the rough registration searches rotations spread over all of them, each as the camera
     (at ``viewpoint``, here not the points' origin: their frame is the model's) would see the skin: the
@@ -424,14 +436,8 @@ def test_the_global_search_finds_the_knee_from_any_side(volunteer):
     truth's own). A case set's views, whose skin is not the model's, are tested in test_benchmark_cases."""
     import knee.models.prior as P
 
-    ph = build_phantom(volunteer.params)
-    tf, pf, _ = volunteer.solve(math.radians(40.0))
-    skin = ph.skin(joint_to_pose(tf), joint_to_pose(pf))
-    sk = SkinModel(volunteer, ph)
     for az in (0.0, 180.0):
-        cam = default_camera(azimuth_deg=az)
-        pts = backproject(DepthNoise().apply(render_depth(skin.vertices, skin.faces, cam), np.random.default_rng(1)),
-                          cam.K, cam.T_world_cam)
+        sk, pts, cam = _phantom_view(volunteer, 40.0, seed=1, azimuth_deg=az)
         r = P.register_roughly(sk, pts, viewpoint=cam.T_world_cam[:3, 3])
         T = r.T_model_world
         rot = math.degrees(math.acos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
@@ -452,13 +458,7 @@ def test_the_global_searchs_starts_keep_their_best_when_pruned(volunteer, monkey
     one all the rotations give (the same rotation and score)."""
     import knee.models.prior as P
 
-    ph = build_phantom(volunteer.params)
-    tf, pf, _ = volunteer.solve(math.radians(40.0))
-    skin = ph.skin(joint_to_pose(tf), joint_to_pose(pf))
-    sk = SkinModel(volunteer, ph)
-    cam = default_camera()
-    pts = backproject(DepthNoise().apply(render_depth(skin.vertices, skin.faces, cam), np.random.default_rng(3)),
-                      cam.K, cam.T_world_cam)
+    sk, pts, cam = _phantom_view(volunteer, 40.0, seed=3)
     flexions = [math.radians(d) for d in P.ROUGH_FLEXIONS_DEG]
     pruned = P.view_starts(sk, pts, flexions, cam.T_world_cam[:3, 3])
     monkeypatch.setattr(P, "GLOBAL_PRUNED", 1.0)
@@ -475,13 +475,7 @@ def test_the_global_search_looks_again_between_its_candidate_flexions(volunteer)
     can hold as many points turned over as the right way round)."""
     import knee.models.prior as P
 
-    ph = build_phantom(volunteer.params)
-    tf, pf, _ = volunteer.solve(math.radians(30.0))
-    skin = ph.skin(joint_to_pose(tf), joint_to_pose(pf))
-    sk = SkinModel(volunteer, ph)
-    cam = default_camera()
-    pts = backproject(DepthNoise().apply(render_depth(skin.vertices, skin.faces, cam), np.random.default_rng(2)),
-                      cam.K, cam.T_world_cam)
+    sk, pts, cam = _phantom_view(volunteer, 30.0, seed=2)
     r = P.register_roughly(sk, pts, viewpoint=cam.T_world_cam[:3, 3])
     assert math.degrees(r.flexion) == pytest.approx(30.0, abs=1e-6)
     at_candidates = P.register_roughly(sk, pts, r.T_model_world, flexions_deg=(15.0, 45.0))
