@@ -564,11 +564,10 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
         return RoughRegistration(T, a, float(np.mean(d < 5.0)), float(np.sqrt(np.mean(trimmed ** 2))))
 
     def refined(a, starts, schedules) -> list[RoughRegistration]:
-        # each start a transform, refined with all the points, or (transform, the points to refine it with)
+        # each start (a transform, the points to refine it with)
         samples, normals, _ = skin.samples(a)
         out = []
-        for start in starts:
-            T0, src = start if isinstance(start, tuple) else (start, pts)
+        for T0, src in starts:
             for schedule in schedules:
                 T = T0
                 for reach in schedule:
@@ -597,7 +596,7 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
                 if not lo < cur.flexion + sign * step * 0.5 < hi:
                     break
                 a = float(np.clip(cur.flexion + sign * step, lo, hi))
-                cur = refined(a, [cur.T_model_world], reaches_mm[-1:])[0]
+                cur = refined(a, [(cur.T_model_world, pts)], reaches_mm[-1:])[0]
                 if (cur.inliers, -cur.rms) > (best.inliers, -best.rms):
                     best = cur
         return best
@@ -638,7 +637,7 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
     if T_init is None:
         return global_search()
     T_init = np.asarray(T_init, float)
-    best = search(lambda a: [T_init])
+    best = search(lambda a: [(T_init, pts)])
     # how far the match lies from the guess, as the guess's own bounds are stated: a rotation, and the
     # motion of the knee's centre (model frame: on the femur's axis at the joint line, where the shank begins)
     turned, moved = placements_apart(skin, best.T_model_world, T_init)

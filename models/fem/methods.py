@@ -1179,22 +1179,19 @@ def another_knee(skin: SkinModel, points_cam, rough) -> tuple[int, int] | None:
     is another knee. Without a rough pose nothing says which is meant: the placement keeps the one with more
     points on the skin. Returns (points on the skin at the knee placed, at the other; thinned to
     :data:`VOXEL_MM`), or None."""
-    points_cam = np.asarray(points_cam, float)
-    lo, hi = skin.mech.assembly_range
-    flexions = sorted({float(np.clip(rough.flexion + math.radians(k), lo, hi)) for k in BACKGROUND_FLEXIONS_DEG})
-    rest = points_cam[~near_skin(skin, transform_points(rough.T_model_world, points_cam), flexions)]
+    points = voxel_downsample(np.asarray(points_cam, float), VOXEL_MM)  # the search thins them so: once here
+    rest = points[~near_match(skin, points, rough)]
     if len(rest) < MIN_POINTS:
         return None
     second = register_roughly(skin, rest)
     if second.inliers < MIN_REGISTERED:
         return None
-    posed = skin.at(second.flexion)
-    thinned = transform_points(second.T_model_world, voxel_downsample(rest, VOXEL_MM))
-    if min(seen_part_points(posed, thinned, part) for part in (THIGH, SHANK)) < MIN_SEEN_SHANK:
+    placed = transform_points(second.T_model_world, rest)
+    if min(seen_part_points(skin.at(second.flexion), placed, part) for part in (THIGH, SHANK)) < MIN_SEEN_SHANK:
         return None
-    mine = transform_points(rough.T_model_world, voxel_downsample(points_cam, VOXEL_MM))
+    mine = transform_points(rough.T_model_world, points)
     held = int(np.count_nonzero(skin.samples(rough.flexion)[2].query(mine)[0] < 5.0))
-    return held, int(round(second.inliers * len(thinned)))
+    return held, int(round(second.inliers * len(rest)))
 
 
 def _placed(skin: SkinModel, points_cam, T_init, **search):
@@ -1230,6 +1227,14 @@ def near_skin(skin: SkinModel, points_model, flexions, reach_mm: float = BACKGRO
     return found
 
 
+def near_match(skin: SkinModel, points_cam, match) -> np.ndarray:
+    """Which points (P,) bool, camera frame, lie within :data:`BACKGROUND_MM` of the skin posed at any flexion
+    within :data:`BACKGROUND_FLEXIONS_DEG` of a rough match's (placed by it; :func:`near_skin`)."""
+    lo, hi = skin.mech.assembly_range
+    flexions = sorted({float(np.clip(match.flexion + math.radians(k), lo, hi)) for k in BACKGROUND_FLEXIONS_DEG})
+    return near_skin(skin, transform_points(match.T_model_world, points_cam), flexions)
+
+
 def drop_background(skin: SkinModel, points_cam, rough, T_init=None, rounds: int = 1, plane=None):
     """The background of a depth image left out: its dominant plane (a table, a wall:
     :func:`knee.foundations.pointclouds.dominant_planes`; one only, and only here, where most points miss
@@ -1240,7 +1245,6 @@ def drop_background(skin: SkinModel, points_cam, rough, T_init=None, rounds: int
     registration, how many were left out); with too few points left, the input unchanged (and ``rough``,
     and 0). ``plane``: the dominant plane's points (P,) bool where the caller has found them already."""
     points_cam = np.asarray(points_cam, float)
-    lo, hi = skin.mech.assembly_range
     keep = ~(dominant_planes(points_cam, VOXEL_MM, max_planes=1) if plane is None else np.asarray(plane, bool))
     if keep.sum() < MIN_POINTS:
         return points_cam, rough, 0
@@ -1250,10 +1254,8 @@ def drop_background(skin: SkinModel, points_cam, rough, T_init=None, rounds: int
     def filtered(best):
         keep = off_plane
         for _ in range(rounds):
-            idx = np.nonzero(keep)[0]
-            flexions = sorted({float(np.clip(best.flexion + math.radians(k), lo, hi)) for k in BACKGROUND_FLEXIONS_DEG})
             near = np.zeros(len(keep), bool)
-            near[idx[near_skin(skin, transform_points(best.T_model_world, points_cam[idx]), flexions)]] = True
+            near[np.nonzero(keep)[0][near_match(skin, points_cam[keep], best)]] = True
             if near.sum() < MIN_POINTS:
                 break
             keep = near
