@@ -518,6 +518,32 @@ def test_rough_registration_searches_a_large_cloud_with_a_subsample(volunteer, s
     assert rot < 10.0 and shift < 15.0, (rot, shift)
 
 
+def test_the_global_search_refines_its_starts_with_a_subsample(volunteer, monkeypatch):
+    """The global search's starts are refined with at most :data:`GLOBAL_ICP_POINTS` of the thinned points
+    (here lowered to a third of them), its best matches followed in flexion with all of them: the match still
+    lands near the truth, and the share of points on the skin it reports is that of all the thinned points."""
+    import knee.models.prior as P
+    from knee.foundations.pointclouds import voxel_downsample
+
+    sk, pts, cam = _phantom_view(volunteer, 40.0, seed=1)
+    every = voxel_downsample(pts, P.VOXEL_MM)
+    few = len(every) // 3
+    monkeypatch.setattr(P, "GLOBAL_ICP_POINTS", few)
+    searched = []
+    original = P.icp
+    monkeypatch.setattr(P, "icp", lambda src, *a, **k: searched.append((len(src), k["max_distance"]))
+                        or original(src, *a, **k))
+    r = P.register_roughly(sk, pts, viewpoint=cam.T_world_cam[:3, 3])
+    wide, narrow = P.ROUGH_REACHES_MM
+    assert {n for n, reach in searched if reach == wide[0]} == {few}  # every start's first, widest ICP
+    assert len(every) in {n for n, _ in searched}                      # the matches followed with all points
+    d, _ = sk.samples(r.flexion)[2].query(transform_points(r.T_model_world, every))
+    assert r.inliers == pytest.approx(float(np.mean(d < 5.0)))
+    T = r.T_model_world
+    rot = math.degrees(math.acos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+    assert rot < 10.0 and float(np.linalg.norm(transform_points(T, pts) - pts, axis=1).mean()) < 15.0
+
+
 def test_the_fem_posed_skin_is_the_fems_skin(volunteer):
     """The flexion estimate's knee band posed by the association model (``skin_model(..., "fem")``) is
     where the FEM puts the skin: at an angle between the sweep's, a separate FEM solve there (8 increments
