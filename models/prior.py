@@ -473,7 +473,7 @@ def view_starts(skin: SkinModel, points, flexions, viewpoint=(0.0, 0.0, 0.0)) ->
     the same views: 6 starts refined instead of :data:`GLOBAL_REFINED` missed 4 more, 100 points 2 more, two
     mean shifts 1 more; 9 starts refined none more, for 0.4 s of 3.1 s."""
     pts = np.asarray(points, float)
-    sub = pts[np.random.default_rng(0).choice(len(pts), min(GLOBAL_POINTS, len(pts)), replace=False)]
+    sub = _thinned(pts, GLOBAL_POINTS)
     centre = sub.mean(axis=0)
     sight = centre - np.asarray(viewpoint, float)
     sight /= max(np.linalg.norm(sight), 1e-9)
@@ -541,8 +541,9 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
     only roughly: from ``T_init`` (cloud to model, within ``guess_within`` = (deg, mm), about 30 deg and
     50 mm), or, without one, from a global search: rotations spread over all of them as a camera at
     ``viewpoint`` (the origin of a depth image's points) would see the skin (:func:`view_starts`, the best
-    :data:`GLOBAL_REFINED` refined with at most :data:`GLOBAL_ICP_POINTS` of the points; a cloud in separate pieces, as two legs or a leg and a box are, searched
-    also from each large piece, its starts refined with its own points: :data:`PIECE_GAP_MM`).
+    :data:`GLOBAL_REFINED` refined with at most :data:`GLOBAL_ICP_POINTS` of the points; a cloud in separate
+    pieces, as two legs or a leg and a box are, searched also from each large piece, its starts refined with
+    its own points: :data:`PIECE_GAP_MM`).
 
     Against the prior's skin posed at a few flexions (within the prior's range), each start is refined by
     ICP with each schedule of shrinking reaches in ``reaches_mm`` (:data:`ROUGH_REACHES_MM`; a global
@@ -639,7 +640,8 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
         sizes = np.bincount(pieces)
         if sizes[0] < ONE_PIECE * len(pts):
             for k in np.nonzero(sizes >= PIECE_SHARE * len(pts))[0]:
-                # a piece's starts refined with its own points (scored, as every match, on all of them)
+                # a piece's starts refined with its own points (at most GLOBAL_ICP_POINTS; scored, as every
+                # match, on all of the cloud's)
                 piece = pts[pieces == k]
                 few = _thinned(piece, GLOBAL_ICP_POINTS)
                 top += [(a, T, few) for _, a, T in view_starts(skin, piece, cands, viewpoint)[:GLOBAL_REFINED]]
