@@ -329,6 +329,29 @@ def test_the_solver_cache_loads_only_what_it_can_trust(tmp_path, monkeypatch):
     assert res.complete
 
 
+def test_a_private_solver_cache_is_removed_when_the_process_ends(tmp_path):
+    """Where the shared cache cannot be trusted the library is compiled into a private temporary folder;
+    that folder goes when the process ends, so repeated runs leave nothing behind in the temp folder."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    cache.chmod(0o777)  # others could write here: not used
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    code = ("from knee.models.mechanism import compiled, load_model; p = load_model('volunteer'); "
+            "b = compiled.new_backend(p.kinds, p.has_pf, compile=True); print(b.library)")
+    env = {**os.environ, "KNEE_CACHE_DIR": str(cache), "TMPDIR": str(temp)}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    lib = Path(out.stdout.strip().splitlines()[-1])
+    assert lib.parent.parent == temp and lib.parent.name.startswith("knee-private-cache-")  # it was used
+    assert not lib.parent.exists() and not list(temp.glob("knee-private-cache-*"))
+
+
 def test_a_diverging_closure_is_said_in_words_not_as_nan():
     from dataclasses import replace
 

@@ -21,6 +21,7 @@ thread its own :class:`Backend`, so two mechanisms of one structure can be solve
 
 from __future__ import annotations
 
+import atexit
 import ctypes
 import hashlib
 import logging
@@ -233,6 +234,8 @@ def _compiled_library(funcs: dict[str, ca.Function]) -> Path | None:
             # a library others could have replaced is never loaded: compile into a private folder instead
             log.warning("not using the solver cache %s: %s; compiling into a private folder", d, unsafe)
             d = Path(tempfile.mkdtemp(prefix="knee-private-cache-"))
+            # removed when the process ends (a loaded library stays mapped): nothing is left in the temp folder
+            atexit.register(shutil.rmtree, d, ignore_errors=True)
             so = d / so.name
         elif so.is_file() and _verified(so):
             return so
