@@ -27,6 +27,7 @@ import trimesh
 from knee.fitting.frames import femur_frame, patella_frame, tibia_frame
 from knee.fitting.landmarks import femur_landmarks, patella_landmarks, tibia_landmarks
 from knee.fitting.regions import articular_regions
+from knee.foundations.conventions import invert_poses, transform_points
 from knee.foundations.errors import KneeInputError
 from knee.foundations.imaging import read_body_transforms, write_markups, write_surface
 from knee.foundations.surfaces import SurfaceQuery, clip_to_slab, closed_surface
@@ -124,7 +125,8 @@ def _osim(path: Path):
     return ligaments, offsets
 
 
-def lenhart_subject(data_folder, out_dir, ct_row: int = 0, mri_row: int = -1) -> Path:
+def lenhart_subject(data_folder, out_dir, ct_row: int | str = 0, mri_row: int = -1,
+                    skin_from: RealKnee | None = None) -> Path:
     """Write the lenhart2015 knee as a subject folder in ``out_dir`` (new or empty) and return it.
 
     - CT: the bone surfaces posed at row ``ct_row`` of the dynamic-MRI table (its scanner frame, mm);
@@ -136,14 +138,20 @@ def lenhart_subject(data_folder, out_dir, ct_row: int = 0, mri_row: int = -1) ->
       superficial MCL, the patellar tendon); articular regions computed from the cartilage surfaces
       (:func:`knee.fitting.regions.articular_regions`).
     - The motion: the table itself, named in ``subject.toml``'s ``[motion]`` with ``reference_row =
-      ct_row``."""
+      ct_row``; ``ct_row="least-flexion"``: the row of its least flexion (10 deg; the table starts at 27).
+    - ``skin_from``: a knee with a skin (the Visible Human's, :func:`visible_human_knee`) whose skin is
+      carried onto these bones (:func:`transplanted_skin`) as ``ct/skin.stl``, cut across the femur's
+      axis ``SKIN_INSIDE_BONES_MM`` inside the bones' cut ends (as a scan's field of view cuts the leg and
+      its bones alike), so that the association FEM can be built on a second real knee. The knee was scanned
+      by MRI without its skin: this one is the other leg's tissue scaled to this knee's width, a
+      plausible leg, not its own."""
     folder = Path(data_folder)
     out = Path(out_dir)
     if out.exists() and any(out.iterdir()):
         raise KneeInputError(f"{out} exists and is not empty; not overwritten")
     table = read_body_transforms(folder / LENHART["motion"])
     n = len(table.time)
-    ct_row, mri_row = ct_row % n, mri_row % n
+    mri_row = mri_row % n
     ligaments, offsets = _osim(folder / LENHART["osim"])
     geo = folder / LENHART["geometry"]
     mesh = {}
@@ -163,6 +171,7 @@ def lenhart_subject(data_folder, out_dir, ct_row: int = 0, mri_row: int = -1) ->
     ankle = offsets["tibia_proximal_r_offset"][1] + offsets["tibia_r_offset"][1]
     lm["tibia"]["LM"], lm["tibia"]["MM"] = ankle + [0.0, 0.0, 35.0], ankle - [0.0, 0.0, 35.0]
     F = {"femur": femur_frame(lm["femur"]), "tibia": tibia_frame(lm["tibia"])}
+    ct_row = _least_flexion_row(table, F) if ct_row == "least-flexion" else int(ct_row) % n
     width = float(np.linalg.norm(lm["femur"]["LE"] - lm["femur"]["ME"]))
     regions = articular_regions(mesh["femur", "cartilage"].vertices, mesh["tibia", "cartilage"].vertices,
                                 F["femur"], F["tibia"], width)
@@ -216,6 +225,19 @@ def lenhart_subject(data_folder, out_dir, ct_row: int = 0, mri_row: int = -1) ->
                 pts = moved(bone, mri_row, np.array([p for _, p in ends[bone]]))
                 write_markups(tmp / "mri/areas" / f"{lig}_{bone}.mrk.json", lab, pts)
         shutil.copyfile(folder / LENHART["motion"], tmp / "passive.sto")
+        if skin_from is not None:
+            ct = {b: mesh[b, "bone"].copy().apply_transform(pose(b, ct_row)) for b in LENHART_BODIES}
+            T = {b: pose(b, ct_row) @ F[b] for b in ("femur", "tibia")}
+            to_f = invert_poses(T["femur"])
+            y0 = _joint_line(transform_points(to_f, ct["femur"].vertices), transform_points(to_f, ct["tibia"].vertices))
+            below = y0 - float(transform_points(to_f, ct["tibia"].vertices)[:, 1].min())
+            above = float(transform_points(to_f, ct["femur"].vertices)[:, 1].max()) - y0
+            skin = transplanted_skin(skin_from, ct["femur"], ct["tibia"], T["femur"], T["tibia"], width,
+                                     below + 30.0, above + 30.0, bones=list(ct.values()))
+            # cut where the bones are cut, as a scan's field of view cuts both (across the femur's axis)
+            up, o = T["femur"][:3, 1], transform_points(T["femur"], np.array([[0.0, y0, 0.0]]))[0]
+            skin = clip_to_slab(skin, o, up, below - SKIN_INSIDE_BONES_MM, above - SKIN_INSIDE_BONES_MM)
+            write_surface(tmp / "ct" / "skin.stl", skin)
         (tmp / "subject.toml").write_text(
             "# The lenhart2015 knee (Lenhart et al. 2015, Ann Biomed Eng 43:2675; Apache-2.0), written by\n"
             "# knee.fitting.reference_data.lenhart_subject from its public files.\n"
@@ -228,6 +250,14 @@ def lenhart_subject(data_folder, out_dir, ct_row: int = 0, mri_row: int = -1) ->
             out.rmdir()
         shutil.move(str(tmp), str(out))
     return out
+
+
+def _least_flexion_row(table, frames) -> int:
+    """The row of the dynamic-MRI table where the knee is least flexed: the smallest angle between the femur's
+    and the tibia's long axes (``frames``: their anatomical frames in the bodies' own)."""
+    yf = (table.poses[LENHART_BODIES["femur"]] @ frames["femur"])[:, :3, 1]
+    yt = (table.poses[LENHART_BODIES["tibia"]] @ frames["tibia"])[:, :3, 1]
+    return int(np.argmax(np.einsum("ij,ij->i", yf, yt)))
 
 
 def visible_human_subject(data_folder, out_dir, band_widths: float = 3.0) -> Path:
@@ -277,3 +307,94 @@ def visible_human_subject(data_folder, out_dir, band_widths: float = 3.0) -> Pat
             out.rmdir()
         shutil.move(str(tmp), str(out))
     return out
+
+
+#: A transplanted skin (:func:`transplanted_skin`): its rings' spacing along the leg (mm) and points per ring,
+#: the least soft tissue (mm) it leaves over a bone, and the half height of the band (femur widths) where
+#: it passes from the femur's frame to the tibia's.
+SKIN_RING_MM, SKIN_RING_POINTS, SKIN_LEAST_TISSUE_MM, SKIN_BLEND_WIDTHS = 3.0, 120, 3.0, 0.25
+#: How far (mm) inside its bones' cut ends lenhart2015's transplanted skin is cut (:func:`lenhart_subject`).
+SKIN_INSIDE_BONES_MM = 3.0
+
+
+def _joint_line(femur_local, tibia_local) -> float:
+    """The joint line's height in the femur frame: midway between the femur's distal-most point and the
+    tibia's highest (as :attr:`knee.models.fem.anatomy.KneeAnatomy.joint_y`)."""
+    return 0.5 * (float(np.min(femur_local[:, 1])) + float(np.max(tibia_local[:, 1])))
+
+
+def _radii(query: SurfaceQuery, heights, angles) -> np.ndarray:
+    """How far (heights x angles) a skin lies from the frame's y axis: rays cast from the axis at each height
+    out along (cos a, 0, sin a); ``inf`` where a ray meets nothing."""
+    H, A = np.meshgrid(heights, angles, indexing="ij")
+    zero = np.zeros_like(H)
+    origins, directions = np.stack([zero, H, zero], -1), np.stack([np.cos(A), zero, np.sin(A)], -1)
+    return query.ray_hits(origins.reshape(-1, 3), directions.reshape(-1, 3)).reshape(H.shape)
+
+
+def transplanted_skin(source: RealKnee, femur, tibia, T_femur, T_tibia, width: float, below_mm: float,
+                      above_mm: float, bones=()) -> trimesh.Trimesh:
+    """A skin for a knee scanned without one: ``source``'s skin (a :class:`RealKnee` with its skin) carried
+    onto another knee's bones, scaled by the ratio of the two knees' femoral widths.
+
+    ``femur``, ``tibia``: the knee's bone surfaces and ``T_femur``, ``T_tibia`` their anatomical frames (4, 4;
+    scan <- bone), all in the scan's frame (mm); ``width``: its femoral width (mm); the skin runs from
+    ``below_mm`` below to ``above_mm`` above its joint line (closed flat at both ends); ``bones``: every bone
+    surface (scan frame) it must enclose. Returns the skin in the scan's frame.
+
+    The source's skin is read as rings about each bone's long axis: its distance from the axis at each
+    height (relative to the joint line, in femur widths) and direction, from the femur's frame above the
+    joint line and from the tibia's below; the new skin takes those distances times the width ratio about
+    its own bones' axes, the two passing into each other over a band of ``SKIN_BLEND_WIDTHS`` femur widths
+    either side of the joint line (so a knee scanned a little more flexed than the source keeps the shank's
+    skin around its shank); then it is pushed out wherever it leaves less than ``SKIN_LEAST_TISSUE_MM`` of
+    tissue over a bone. What it stands for: a plausible leg of that knee's size, not that subject's own skin
+    (the soft tissue's thickness is the source's, scaled)."""
+    if source.skin is None:
+        raise KneeInputError(f"{source.name} has no skin to carry over")
+    Fs, Ts = source.frames["femur"], source.frames["tibia"]
+    src_to_f = invert_poses(Fs)
+    sy0 = _joint_line(transform_points(src_to_f, source.femur.vertices), transform_points(src_to_f, source.tibia.vertices))
+    lm = source.landmarks["femur"]
+    scale = width / float(np.linalg.norm(lm["LE"] - lm["ME"]))
+    to_f = invert_poses(np.asarray(T_femur, float))
+    y0 = _joint_line(transform_points(to_f, np.asarray(femur.vertices)), transform_points(to_f, np.asarray(tibia.vertices)))
+    heights = np.linspace(-below_mm, above_mm, int(np.ceil((below_mm + above_mm) / SKIN_RING_MM)) + 1)
+    angles = np.linspace(0.0, 2 * np.pi, SKIN_RING_POINTS, endpoint=False)
+    H, A = np.meshgrid(heights, angles, indexing="ij")
+    rings = []
+    for src_T, T in ((Fs, np.asarray(T_femur, float)), (Ts, np.asarray(T_tibia, float))):
+        # the joint line's height in this bone's frame, for the source and for the knee
+        s_off = transform_points(invert_poses(src_T) @ Fs, np.array([[0.0, sy0, 0.0]]))[0, 1]
+        t_off = transform_points(invert_poses(T) @ np.asarray(T_femur, float), np.array([[0.0, y0, 0.0]]))[0, 1]
+        skin_local = source.skin.copy().apply_transform(invert_poses(src_T))
+        r = scale * _radii(SurfaceQuery.of(skin_local), s_off + heights / scale, angles)
+        if not np.all(np.isfinite(r)):
+            raise KneeInputError(f"{source.name}'s skin does not surround its bones' axes from {below_mm:.0f} mm "
+                                 f"below to {above_mm:.0f} mm above the joint line (scaled)")
+        local = np.stack([r * np.cos(A), t_off + H, r * np.sin(A)], -1)
+        rings.append(transform_points(T, local.reshape(-1, 3)).reshape(local.shape))
+    t = np.clip((SKIN_BLEND_WIDTHS * width - H) / (2 * SKIN_BLEND_WIDTHS * width), 0.0, 1.0)[..., None]
+    w = t * t * (3 - 2 * t)  # the tibia's share: 0 above the band, 1 below it
+    ring = (1.0 - w) * rings[0] + w * rings[1]
+    n_h, n_a = H.shape
+    idx = np.arange(n_h * n_a).reshape(n_h, n_a)
+    nxt = np.roll(idx, -1, axis=1)
+    a, b, c, d = idx[:-1], nxt[:-1], idx[1:], nxt[1:]
+    faces = [np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)]
+    ends = np.stack([ring[0].mean(axis=0), ring[-1].mean(axis=0)])
+    k = n_h * n_a
+    faces += [np.stack([np.full(n_a, k), idx[0], nxt[0]], -1), np.stack([np.full(n_a, k + 1), nxt[-1], idx[-1]], -1)]
+    skin = trimesh.Trimesh(np.vstack([ring.reshape(-1, 3), ends]), np.concatenate(faces), process=False)
+    if skin.volume < 0:
+        skin.invert()
+    side = [SurfaceQuery.of(m) for m in bones]
+    for _ in range(3):  # out along the skin's normals where it lies too close to a bone (or inside one)
+        v = np.asarray(skin.vertices, float)
+        gap = np.min([q.signed_distance(v) for q in side], axis=0) if side else np.full(len(v), np.inf)
+        push = np.clip(SKIN_LEAST_TISSUE_MM - gap, 0.0, None)
+        push[k:] = 0.0  # the end caps stay flat
+        if not np.any(push > 1e-3):
+            break
+        skin = trimesh.Trimesh(v + push[:, None] * skin.vertex_normals, skin.faces, process=False)
+    return skin

@@ -238,6 +238,26 @@ def voxel_downsample(points, voxel: float) -> np.ndarray:
     return out / counts[:, None]
 
 
+def thinned_evenly(points, most: int) -> np.ndarray:
+    """The indices (sorted) of at most ``most`` of ``points`` (P, 3) spread evenly over them: all of them when
+    they are that few; else one point (the first) per voxel, the voxel's edge grown by a quarter from 1/200
+    of the points' extent until no more than ``most`` are left. Deterministic; the points kept are input
+    points (a surface's vertices stay on it), unlike :func:`voxel_downsample`'s means."""
+    points = np.asarray(points, float)
+    if len(points) <= most:
+        return np.arange(len(points))
+    lo = points.min(axis=0)
+    h = float(np.max(points.max(axis=0) - lo)) / 200.0
+    while True:
+        ijk = np.floor((points - lo) / h).astype(np.int64)
+        span = ijk.max(axis=0) + 1
+        keys = (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
+        _, first = np.unique(keys, return_index=True)
+        if first.size <= most:
+            return np.sort(first)
+        h *= 1.25
+
+
 def icp(source_points, target_points, init=None, max_distance: float = 20.0, iterations: int = 60,
         target_normals=None, point_to_point: bool = False):
     """Rigid registration of ``source_points`` onto ``target_points`` (point-to-plane ICP, open3d; or

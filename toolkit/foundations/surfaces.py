@@ -39,6 +39,12 @@ class SurfaceQuery:
         """(P, 3) -> (P, 3) closest points on the surface."""
         return self.closest(points)[0]
 
+    def ray_hits(self, origins, directions) -> np.ndarray:
+        """(P, 3), (P, 3) -> (P,) how far along each ray (unit directions: mm) it first meets the surface;
+        ``inf`` where it meets nothing."""
+        rays = np.concatenate([np.asarray(origins, float).reshape(-1, 3), np.asarray(directions, float).reshape(-1, 3)], 1)
+        return self.scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy().astype(float)
+
     def closest(self, points) -> tuple[np.ndarray, np.ndarray]:
         """(P, 3) -> closest points on the surface (P, 3) and the normals of their triangles (P, 3)."""
         p = o3d.core.Tensor(np.asarray(points, np.float32).reshape(-1, 3))

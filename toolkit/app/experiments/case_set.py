@@ -53,7 +53,7 @@ from knee.app.experiments.cases import CompareRow, reconstruction_row
 from knee.app.experiments.subject_cases import camera_stage_errors, camera_target_errors, random_pose
 from knee.fitting.optimize import perturb_endpoints
 from knee.fitting.pipeline import anatomical_frames
-from knee.fitting.reference_data import lenhart_subject, visible_human_subject
+from knee.fitting.reference_data import lenhart_subject, visible_human_knee, visible_human_subject
 from knee.fitting.subject import load_subject
 from knee.fitting.subject_anatomy import subject_anatomy
 from knee.fitting.synthetic import make_subject
@@ -89,7 +89,7 @@ VERSION = 2
 PLACEMENTS = {"paper": (35.0, 30.0, 350.0), "frontal": (0.0, 15.0, 400.0), "lateral": (70.0, 35.0, 300.0)}
 MISMATCHES_MM = (0.0, 1.0, 2.0)
 #: The anatomies a case set can hold and its families of truth motion (:func:`build_case_set`).
-ANATOMIES = ("phantom", "visible-human-male")
+ANATOMIES = ("phantom", "visible-human-male", "lenhart2015")
 FAMILIES = ("mechanism+deviation", "measured")
 #: The rough pose given to the methods: the truth turned by 15-30 deg and moved by 25-50 mm.
 ROUGH_DEG, ROUGH_MM = (15.0, 30.0), (25.0, 50.0)
@@ -232,6 +232,15 @@ def _anatomies(out: Path, data, seed: int, names, patella: bool = False) -> list
             truth = Mechanism.from_name("volunteer")
             prior_of = truth.params
             note = "the bundled volunteer's synthetic subject; truth mechanism volunteer"
+        elif name == "lenhart2015":  # a second real knee; its skin the Visible Human's, carried over
+            folder = lenhart_subject(data, out / "subjects" / name, ct_row="least-flexion",
+                                     skin_from=visible_human_knee(data))
+            template, s = template_prior(subject_anatomy(load_subject(folder)), with_pf=patella)
+            truth = Mechanism(template)
+            prior_of = dataclasses.replace(template, pf=None)
+            note = (f"lenhart2015's right knee (MRI bones at its least flexed row of the dynamic MRI), its skin the "
+                    f"Visible Human's scaled to its width (it was scanned without one); truth mechanism volunteer "
+                    f"scaled by {s:.3f} to its width")
         else:  # "visible-human-male" (the names are checked by build_case_set)
             folder = visible_human_subject(data, out / "subjects" / name)
             template, s = template_prior(subject_anatomy(load_subject(folder)), with_pf=patella)
