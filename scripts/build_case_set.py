@@ -22,7 +22,9 @@ def main() -> int:
     ap.add_argument("--out", required=True)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
-    ap.add_argument("--anatomies", default="phantom,visible-human-male")
+    ap.add_argument("--anatomies", default="phantom,visible-human-male",
+                    help="any of phantom, visible-human-male, lenhart2015 (its MRI bones with the Visible Human's "
+                         "skin carried over), comma-separated")
     ap.add_argument("--families", default="mechanism+deviation,measured")
     ap.add_argument("--patella", action="store_true",
                     help="the truth's tissue holds the subject's patella, moved by the truth mechanism's PF motion")

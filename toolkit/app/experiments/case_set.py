@@ -4,7 +4,9 @@ seed into a folder, run by ``knee compare CASE_SET``.
 What makes the cases honest:
 
 - anatomy: subject folders read as any subject's are, the phantom (the bundled ``volunteer``'s synthetic
-  subject) and, where ``../shared/data`` is present, the Visible Human Male's real knee;
+  subject) and, where ``../shared/data`` is present, the Visible Human Male's real knee (and, asked for,
+  lenhart2015's MRI bones with the Visible Human's skin carried onto them,
+  :func:`knee.fitting.reference_data.transplanted_skin`);
 - the truth's bone motion is not the prior's: the truth mechanism's motion (the phantom's own parameter
   set; for the Visible Human, a template scaled to the knee) plus a random deviation of the tibia, 1-3 mm
   and 2-5 deg ("mechanism+deviation"), and a measured motion, lenhart2015's dynamic MRI transferred as
