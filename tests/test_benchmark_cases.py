@@ -122,6 +122,28 @@ def test_tissue_posed_follows_the_bones_and_differs_from_a_rigid_blend(phantom_t
     assert posed.skin(tissue).is_watertight
 
 
+def test_the_tissue_holds_the_skins_ends_with_their_bones(phantom_tissue):
+    """Where the skin ends along the leg (a scan's field of view), its nodes move with the bone of their
+    side, as the leg past the scan would carry them: the thigh's end stays with the femur, the shank's end
+    turns exactly with the tibia (left free, a short scan's shank skin lagged its tibia by degrees)."""
+    from knee.models.fem.tissue import END_SPACINGS
+
+    tissue, mech = phantom_tissue
+    m = tissue.mesh
+    n_skin = m.skin_faces.max() + 1
+    y = m.X[:n_skin, 1]
+    h = m.edge
+    top = np.nonzero(y > y.max() - END_SPACINGS * h)[0]
+    bottom = np.nonzero(y < y.min() + END_SPACINGS * h)[0]
+    assert len(top) and len(bottom)
+    assert np.isin(top, m.femur_nodes).all() and np.isin(bottom, m.tibia_nodes).all()
+    T = joint_to_pose(mech.solve(math.radians(60.0))[0])
+    posed = tissue.pose(T)
+    rel = T @ np.linalg.inv(tissue.T_scan)
+    np.testing.assert_allclose(posed.x[bottom], m.X[bottom] @ rel[:3, :3].T + rel[:3, 3], atol=1e-9)
+    np.testing.assert_allclose(posed.x[top], m.X[top], atol=1e-12)
+
+
 def test_smooth_surface_field_rms_and_smoothness():
     rng = np.random.default_rng(0)
     u = rng.normal(size=(4000, 3))
