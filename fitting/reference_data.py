@@ -31,6 +31,7 @@ from knee.foundations.conventions import invert_poses, transform_points
 from knee.foundations.errors import KneeInputError
 from knee.foundations.imaging import read_body_transforms, write_markups, write_surface
 from knee.foundations.surfaces import SurfaceQuery, clip_to_slab, closed_surface
+from knee.models.fem.anatomy import joint_line
 
 #: The Visible Human files, relative to the data folder.
 VISIBLE_HUMAN = ("visible-human-male/VH_M_Knee_R.glb", "visible-human-male/VH_M_Skin.glb")
@@ -171,7 +172,12 @@ def lenhart_subject(data_folder, out_dir, ct_row: int | str = 0, mri_row: int = 
     ankle = offsets["tibia_proximal_r_offset"][1] + offsets["tibia_r_offset"][1]
     lm["tibia"]["LM"], lm["tibia"]["MM"] = ankle + [0.0, 0.0, 35.0], ankle - [0.0, 0.0, 35.0]
     F = {"femur": femur_frame(lm["femur"]), "tibia": tibia_frame(lm["tibia"])}
-    ct_row = _least_flexion_row(table, F) if ct_row == "least-flexion" else int(ct_row) % n
+    if ct_row == "least-flexion":
+        ct_row = _least_flexion_row(table, F)
+    elif isinstance(ct_row, (int, np.integer)) and not isinstance(ct_row, bool):
+        ct_row = int(ct_row) % n
+    else:
+        raise KneeInputError(f"ct_row must be a row of the motion table (an integer) or 'least-flexion', got {ct_row!r}")
     width = float(np.linalg.norm(lm["femur"]["LE"] - lm["femur"]["ME"]))
     regions = articular_regions(mesh["femur", "cartilage"].vertices, mesh["tibia", "cartilage"].vertices,
                                 F["femur"], F["tibia"], width)
@@ -229,11 +235,12 @@ def lenhart_subject(data_folder, out_dir, ct_row: int | str = 0, mri_row: int = 
             ct = {b: mesh[b, "bone"].copy().apply_transform(pose(b, ct_row)) for b in LENHART_BODIES}
             T = {b: pose(b, ct_row) @ F[b] for b in ("femur", "tibia")}
             to_f = invert_poses(T["femur"])
-            y0 = _joint_line(transform_points(to_f, ct["femur"].vertices), transform_points(to_f, ct["tibia"].vertices))
+            y0 = joint_line(transform_points(to_f, ct["femur"].vertices), transform_points(to_f, ct["tibia"].vertices))
             below = y0 - float(transform_points(to_f, ct["tibia"].vertices)[:, 1].min())
             above = float(transform_points(to_f, ct["femur"].vertices)[:, 1].max()) - y0
+            # made longer than the bones, then cut a little inside their ends
             skin = transplanted_skin(skin_from, ct["femur"], ct["tibia"], T["femur"], T["tibia"], width,
-                                     below + 30.0, above + 30.0, bones=list(ct.values()))
+                                     below + SKIN_MADE_PAST_MM, above + SKIN_MADE_PAST_MM, bones=list(ct.values()))
             # cut where the bones are cut, as a scan's field of view cuts both (across the femur's axis)
             up, o = T["femur"][:3, 1], transform_points(T["femur"], np.array([[0.0, y0, 0.0]]))[0]
             skin = clip_to_slab(skin, o, up, below - SKIN_INSIDE_BONES_MM, above - SKIN_INSIDE_BONES_MM)
@@ -315,12 +322,9 @@ def visible_human_subject(data_folder, out_dir, band_widths: float = 3.0) -> Pat
 SKIN_RING_MM, SKIN_RING_POINTS, SKIN_LEAST_TISSUE_MM, SKIN_BLEND_WIDTHS = 3.0, 120, 3.0, 0.25
 #: How far (mm) inside its bones' cut ends lenhart2015's transplanted skin is cut (:func:`lenhart_subject`).
 SKIN_INSIDE_BONES_MM = 3.0
-
-
-def _joint_line(femur_local, tibia_local) -> float:
-    """The joint line's height in the femur frame: midway between the femur's distal-most point and the
-    tibia's highest (as :attr:`knee.models.fem.anatomy.KneeAnatomy.joint_y`)."""
-    return 0.5 * (float(np.min(femur_local[:, 1])) + float(np.max(tibia_local[:, 1])))
+#: ... after being made this much (mm) longer than the bones at either end (past the bones' ends the rings
+#: would meet no bone, so the cut, not the rings' end, closes the leg).
+SKIN_MADE_PAST_MM = 30.0
 
 
 def _radii(query: SurfaceQuery, heights, angles) -> np.ndarray:
@@ -354,11 +358,11 @@ def transplanted_skin(source: RealKnee, femur, tibia, T_femur, T_tibia, width: f
         raise KneeInputError(f"{source.name} has no skin to carry over")
     Fs, Ts = source.frames["femur"], source.frames["tibia"]
     src_to_f = invert_poses(Fs)
-    sy0 = _joint_line(transform_points(src_to_f, source.femur.vertices), transform_points(src_to_f, source.tibia.vertices))
+    sy0 = joint_line(transform_points(src_to_f, source.femur.vertices), transform_points(src_to_f, source.tibia.vertices))
     lm = source.landmarks["femur"]
     scale = width / float(np.linalg.norm(lm["LE"] - lm["ME"]))
     to_f = invert_poses(np.asarray(T_femur, float))
-    y0 = _joint_line(transform_points(to_f, np.asarray(femur.vertices)), transform_points(to_f, np.asarray(tibia.vertices)))
+    y0 = joint_line(transform_points(to_f, np.asarray(femur.vertices)), transform_points(to_f, np.asarray(tibia.vertices)))
     heights = np.linspace(-below_mm, above_mm, int(np.ceil((below_mm + above_mm) / SKIN_RING_MM)) + 1)
     angles = np.linspace(0.0, 2 * np.pi, SKIN_RING_POINTS, endpoint=False)
     H, A = np.meshgrid(heights, angles, indexing="ij")

@@ -3,7 +3,7 @@ from a seed, then run it with ``knee compare CASE_SET --out OUT``.
 
     .venv/bin/python scripts/build_case_set.py --out cases [--seed 0] [--data ../shared/data]
         [--anatomies phantom,visible-human-male] [--families mechanism+deviation,measured] [--patella]
-        [--flying 0.5] [--noise-correlation 3] [--hole-size 4] [--noise-sigma 1.6]
+        [--flying 0.5] [--noise-correlation 3] [--hole-size 4] [--noise-sigma 1.6] [--skin-band 1]
 
 Without the data folder, only the phantom's mechanism cases are built. The cases, the truth and what the
 methods are given: :mod:`knee.app.experiments.case_set`. About 2-5 min on 2 cores (the truth skins).
@@ -26,6 +26,9 @@ def main() -> int:
                     help="any of phantom, visible-human-male, lenhart2015 (its MRI bones with the Visible Human's "
                          "skin carried over), comma-separated")
     ap.add_argument("--families", default="mechanism+deviation,measured")
+    ap.add_argument("--skin-band", type=float, default=3.0, metavar="WIDTHS",
+                    help="how far (femur widths) either side of the joint line the Visible Human's skin and bones "
+                         "are kept (3; 1 stands for a short scan)")
     ap.add_argument("--patella", action="store_true",
                     help="the truth's tissue holds the subject's patella, moved by the truth mechanism's PF motion")
     ap.add_argument("--flying", type=float, default=0.0,
@@ -57,7 +60,7 @@ def main() -> int:
                            tuple(f.strip() for f in args.families.split(",") if f.strip()),
                            progress=lambda s: say(f"[{time.perf_counter() - t0:5.0f} s] {s}"), patella=args.patella,
                            flying=args.flying, correlation_px=args.noise_correlation, hole_px=args.hole_size,
-                           sigma_mm=args.noise_sigma)
+                           sigma_mm=args.noise_sigma, skin_band=args.skin_band)
     except KneeError as e:
         print(f"build_case_set: error: {e}", file=sys.stderr)
         return 2

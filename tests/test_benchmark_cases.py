@@ -394,7 +394,8 @@ def test_case_set_build_refuses_bad_choices_before_writing(tmp_path):
                     ({"flying": float("nan")}, "flying pixels' share must lie from 0 to 1, got nan"),
                     ({"correlation_px": -2.0}, "noise correlation must lie from 0 to 100 pixels, got -2.0"),
                     ({"hole_px": float("nan")}, "hole size must lie from 0 to 100 pixels, got nan"),
-                    ({"sigma_mm": -1.0}, "depth noise must lie from 0 to 50 mm, got -1.0")):
+                    ({"sigma_mm": -1.0}, "depth noise must lie from 0 to 50 mm, got -1.0"),
+                    ({"skin_band": 0.2}, "skin band must lie from 0.75 to 3 femur widths, got 0.2")):
         with pytest.raises(KneeInputError, match=msg):
             build_case_set(out, data=None, **{"seed": 0, **kw})
         assert not out.exists()

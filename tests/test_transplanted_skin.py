@@ -107,3 +107,26 @@ def test_lenhart_with_a_carried_skin_builds_the_association_model(lenhart_with_s
     assert len(a.femur.vertices) > BONE_POINTS_MOST  # an MRI's bones: the thinning is exercised
     model = build_knee_model(a)
     assert len(model.grid.cells) > 300
+
+
+def test_bad_requests_for_a_carried_skin_are_refused_in_one_line(visible_human, shared_data, tmp_path):
+    """A knee without a skin to carry over, a skin asked for farther than the source's reaches, and a row
+    that is neither a row nor 'least-flexion': each refused with a one-line error naming it, nothing
+    written."""
+    from dataclasses import replace
+
+    from knee.fitting.reference_data import lenhart_subject, transplanted_skin
+    from knee.foundations.errors import KneeInputError
+
+    vh = visible_human
+    lm = vh.landmarks["femur"]
+    width = float(np.linalg.norm(lm["LE"] - lm["ME"]))
+    args = (vh.femur, vh.tibia, vh.frames["femur"], vh.frames["tibia"], width)
+    with pytest.raises(KneeInputError, match="visible-human-male has no skin to carry over"):
+        transplanted_skin(replace(vh, skin=None), *args, 100.0, 100.0)
+    with pytest.raises(KneeInputError, match="skin does not surround its bones' axes from 100 mm below to 5000 mm"):
+        transplanted_skin(vh, *args, 100.0, 5000.0)  # past the body's top: the rays meet nothing
+    out = tmp_path / "lenhart"
+    with pytest.raises(KneeInputError, match="ct_row must be a row of the motion table .* got 'first'"):
+        lenhart_subject(shared_data, out, ct_row="first", skin_from=vh)
+    assert not out.exists()

@@ -90,9 +90,8 @@ class KneeAnatomy:
 
     @cached_property
     def joint_y(self) -> float:
-        """The joint line's height (femur frame, mm): midway between the femur's distal-most point and the
-        tibia's highest one."""
-        return 0.5 * (float(self.femur.vertices[:, 1].min()) + float(self.tibia.vertices[:, 1].max()))
+        """The joint line's height (femur frame, mm): :func:`joint_line` of the bones."""
+        return joint_line(self.femur.vertices, self.tibia.vertices)
 
     @cached_property
     def width(self) -> float:
@@ -192,11 +191,20 @@ def anatomy_in_femur_frame(femur, tibia, skin, T_scan_femur, T_scan_tibia, mcl=N
     return KneeAnatomy(*to, Tf_inv @ np.asarray(T_scan_tibia, float), ins[0], ins[1], name)
 
 
-def bone_queries(anatomy) -> tuple[list, list]:
-    """The femur's and the tibia's closed shells as signed-distance queries (for :func:`bone_clearance`;
-    built once for the many poses a slide along the tibia's axis tries)."""
-    return tuple([SurfaceQuery.of(m) for m in (mesh.split(only_watertight=True) or [mesh])]
-                 for mesh in (anatomy.femur, anatomy.tibia))
+def joint_line(femur_vertices, tibia_vertices) -> float:
+    """The joint line's height (mm) in the femur frame of the bones' vertices (V, 3) given: midway between
+    the femur's distal-most point and the tibia's highest one."""
+    return 0.5 * (float(np.min(np.asarray(femur_vertices)[:, 1])) + float(np.max(np.asarray(tibia_vertices)[:, 1])))
+
+
+def bone_queries(anatomy) -> tuple[list, list, np.ndarray, np.ndarray]:
+    """What :func:`bone_clearance` asks, built once for the many poses a slide along the tibia's axis tries:
+    the femur's and the tibia's closed shells as signed-distance queries, and each bone's vertices that are
+    asked (at most :data:`BONE_POINTS_MOST`, spread evenly)."""
+    shells = [[SurfaceQuery.of(m) for m in (mesh.split(only_watertight=True) or [mesh])]
+              for mesh in (anatomy.femur, anatomy.tibia)]
+    fv, tv = (np.asarray(m.vertices, float) for m in (anatomy.femur, anatomy.tibia))
+    return shells[0], shells[1], fv[thinned_evenly(fv, BONE_POINTS_MOST)], tv[thinned_evenly(tv, BONE_POINTS_MOST)]
 
 
 def bone_clearance(anatomy, T_tibia, queries=None) -> float:
@@ -207,7 +215,7 @@ def bone_clearance(anatomy, T_tibia, queries=None) -> float:
     over the condyles, say) is their union: a point's signed distance is its least over the shells (the
     parity inside two overlapping shells would call it outside). ``queries``: :func:`bone_queries` of the
     anatomy, when already built."""
-    femur_q, tibia_q = bone_queries(anatomy) if queries is None else queries
+    femur_q, tibia_q, fv, tv = bone_queries(anatomy) if queries is None else queries
     move = np.asarray(T_tibia, float) @ invert_poses(anatomy.tibia_pose)
 
     def signed(shells, points):
@@ -222,9 +230,8 @@ def bone_clearance(anatomy, T_tibia, queries=None) -> float:
                 return d
         return np.min([q.signed_distance(points) for q in shells], axis=0).min()
 
-    tv, fv = (np.asarray(m.vertices, float) for m in (anatomy.tibia, anatomy.femur))
-    tib = transform_points(move, tv[thinned_evenly(tv, BONE_POINTS_MOST)])
-    fem = transform_points(invert_poses(move), fv[thinned_evenly(fv, BONE_POINTS_MOST)])
+    tib = transform_points(move, tv)
+    fem = transform_points(invert_poses(move), fv)
     return float(min(signed(femur_q, tib), signed(tibia_q, fem)))
 
 

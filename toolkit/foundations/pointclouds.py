@@ -223,15 +223,20 @@ def connected_parts(points, gap: float) -> np.ndarray:
     return rank[labels]
 
 
+def _voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Each point's voxel (edge ``voxel``) as one integer: its three indices packed, so that grouping the
+    points by voxel is a 1-D unique."""
+    ijk = np.floor(points / voxel).astype(np.int64)
+    ijk -= ijk.min(axis=0)
+    span = ijk.max(axis=0) + 1
+    return (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
+
+
 def voxel_downsample(points, voxel: float) -> np.ndarray:
     """One point (the mean) per occupied voxel, vectorised (the voxel's three indices packed into one
     integer key, so the grouping is a 1-D unique)."""
     points = np.asarray(points, float)
-    ijk = np.floor(points / voxel).astype(np.int64)
-    ijk -= ijk.min(axis=0)
-    span = ijk.max(axis=0) + 1
-    keys = (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
-    _, inv, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    _, inv, counts = np.unique(_voxel_keys(points, voxel), return_inverse=True, return_counts=True)
     out = np.zeros((counts.size, 3))
     for k in range(3):
         out[:, k] = np.bincount(inv, weights=points[:, k], minlength=counts.size)
@@ -246,13 +251,10 @@ def thinned_evenly(points, most: int) -> np.ndarray:
     points = np.asarray(points, float)
     if len(points) <= most:
         return np.arange(len(points))
-    lo = points.min(axis=0)
-    h = float(np.max(points.max(axis=0) - lo)) / 200.0
+    rel = points - points.min(axis=0)  # the voxels start at the points' lowest corner
+    h = float(rel.max()) / 200.0
     while True:
-        ijk = np.floor((points - lo) / h).astype(np.int64)
-        span = ijk.max(axis=0) + 1
-        keys = (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
-        _, first = np.unique(keys, return_index=True)
+        _, first = np.unique(_voxel_keys(rel, h), return_index=True)
         if first.size <= most:
             return np.sort(first)
         h *= 1.25

@@ -99,6 +99,9 @@ ROUGH_DEG, ROUGH_MM = (15.0, 30.0), (25.0, 50.0)
 DEVIATION_DEG, DEVIATION_MM = (2.0, 5.0), (1.0, 3.0)
 MECHANISM_FLEXIONS = (30.0, 60.0, 90.0)
 MEASURED_FLEXIONS = (20.0, 30.0, 45.0)
+#: How far (femur widths) either side of the joint line the Visible Human's skin and bones are kept by
+#: default (:func:`knee.fitting.reference_data.visible_human_subject`; the model then keeps 2.5).
+VH_SKIN_BAND_WIDTHS = 3.0
 #: The skin mismatch field's correlation length, in femoral widths.
 FIELD_WIDTHS = 0.25
 
@@ -223,7 +226,8 @@ def _assembling_prior(params, seed: int):
     raise KneeError(f"no perturbed prior of {params.name} assembles over 0-120 deg")
 
 
-def _anatomies(out: Path, data, seed: int, names, patella: bool = False) -> list[tuple[Anatomy, Mechanism, object]]:
+def _anatomies(out: Path, data, seed: int, names, patella: bool = False,
+               skin_band: float = VH_SKIN_BAND_WIDTHS) -> list[tuple[Anatomy, Mechanism, object]]:
     """(entry, truth mechanism, prior params) of each anatomy, their subject folders and priors written
     (``patella``: the Visible Human's truth mechanism with the template's PF joint scaled too; its prior, TF
     only, is the same either way)."""
@@ -244,11 +248,13 @@ def _anatomies(out: Path, data, seed: int, names, patella: bool = False) -> list
                     f"Visible Human's scaled to its width (it was scanned without one); truth mechanism volunteer "
                     f"scaled by {s:.3f} to its width")
         else:  # "visible-human-male" (the names are checked by build_case_set)
-            folder = visible_human_subject(data, out / "subjects" / name)
+            folder = visible_human_subject(data, out / "subjects" / name, band_widths=skin_band)
             template, s = template_prior(subject_anatomy(load_subject(folder)), with_pf=patella)
             truth = Mechanism(template)
             prior_of = dataclasses.replace(template, pf=None)  # TF only, with the patella or without
             note = f"the Visible Human Male's right knee; truth mechanism volunteer scaled by {s:.3f} to its width"
+            if skin_band != VH_SKIN_BAND_WIDTHS:
+                note += f"; its skin and bones kept {skin_band:g} femur widths either side of the joint line"
         if patella:
             note += "; the truth's tissue holds the patella, moved by the truth mechanism's PF motion"
         prior, k = _assembling_prior(prior_of, seed)
@@ -271,7 +277,8 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
                    families=("mechanism+deviation", "measured"), progress: Callable[[str], None] | None = None,
                    mechanism_flexions=MECHANISM_FLEXIONS, measured_flexions=MEASURED_FLEXIONS,
                    mismatches=MISMATCHES_MM, patella: bool = False, flying: float = 0.0,
-                   correlation_px: float = 0.0, hole_px: float = 0.0, sigma_mm: float = 1.0) -> Path:
+                   correlation_px: float = 0.0, hole_px: float = 0.0, sigma_mm: float = 1.0,
+                   skin_band: float = VH_SKIN_BAND_WIDTHS) -> Path:
     """Build the case set into ``out`` (a new folder; see the module docstring). ``data``: the folder
     holding ``visible-human-male/`` and ``lenhart2015/``; without it, the phantom's mechanism cases only.
     Each pose is seen from the paper's placement at every skin mismatch, and from the other placements at
@@ -284,13 +291,17 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
     model's ``flying``, :class:`knee.models.fem.depth.DepthNoise`); the rest of each image as without.
     ``correlation_px``, ``hole_px``: the noise model's, the width (pixels) over which neighbouring pixels'
     errors are correlated and the size of the blobs the lost pixels come in (0: each pixel on its own);
-    ``sigma_mm``: the depth error's standard deviation at 400 mm (growing with the square of the depth)."""
+    ``sigma_mm``: the depth error's standard deviation at 400 mm (growing with the square of the depth).
+    ``skin_band``: how far (femur widths) either side of the joint line the Visible Human's skin and bones
+    are kept (:data:`VH_SKIN_BAND_WIDTHS`; 1 stands for a short scan, whose field of view ends near the knee)."""
     out = Path(out)
     say = progress or (lambda text: None)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise KneeInputError(f"the seed must be a non-negative integer, got {seed!r}")
     if not 0.0 <= flying <= 1.0:  # also refuses NaN
         raise KneeInputError(f"the flying pixels' share must lie from 0 to 1, got {flying!r}")
+    if not (isinstance(skin_band, (int, float, np.integer, np.floating)) and 0.75 <= skin_band <= 3.0):
+        raise KneeInputError(f"the skin band must lie from 0.75 to 3 femur widths, got {skin_band!r}")
     for name, v, top, unit in (("noise correlation", correlation_px, 100.0, "pixels"),
                                ("hole size", hole_px, 100.0, "pixels"), ("depth noise", sigma_mm, 50.0, "mm")):
         if not (isinstance(v, (int, float, np.integer, np.floating)) and 0.0 <= v <= top):  # also refuses NaN
@@ -310,7 +321,7 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
         families = tuple(f for f in families if f != "measured")
     cases = []
     entries = []
-    for entry, truth, prior_params in _anatomies(out, data, seed, anatomies, patella):
+    for entry, truth, prior_params in _anatomies(out, data, seed, anatomies, patella, skin_band):
         entries.append(entry)
         subject = load_subject(out / entry.subject)
         anatomy = subject_anatomy(subject, prior_params)
