@@ -31,7 +31,7 @@ from trimesh.sample import sample_surface
 from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
 from knee.foundations.errors import KneeInputError
 from knee.foundations.pointclouds import connected_parts, icp, voxel_downsample
-from knee.foundations.surfaces import SurfaceQuery, clip_to_slab
+from knee.foundations.surfaces import BandDistances, SurfaceQuery, clip_to_slab
 from knee.models.mechanism.solver import Mechanism
 from knee.models.phantom import Phantom
 
@@ -804,11 +804,13 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
     D = np.eye(4)
     rms = []
     n = 0
+    near = BandDistances(shank, len(pts))  # most of the cloud (the thigh, the knee) is asked once
     for it in range(iterations):
         wide = wide_band_mm is not None and it < wide_iterations
+        band = wide_band_mm if wide else band_mm
         local = transform_points(invert_poses(T_prior @ D), pts)
-        d = shank.signed_distance(local)
-        sel = (np.abs(d) < (wide_band_mm if wide else band_mm)) & (d < others - 2.0)
+        d = near.within(local, band)
+        sel = (np.abs(d) < band) & (d < others - 2.0)
         n = int(sel.sum())
         if n < MIN_CORRECTION_POINTS:
             break

@@ -5,6 +5,8 @@ import open3d as o3d
 import pytest
 import trimesh
 from scipy import ndimage
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from knee.foundations.conventions import cardan_to_matrix
 from knee.foundations.errors import KneeInputError
@@ -65,6 +67,29 @@ def test_backprojected_points_lie_on_the_surface(knee_like):
     surf = knee_like.sample(20000, seed=0)
     seen_fraction = np.mean(cKDTree(pts).query(surf)[0] < 1.5)
     assert 0.2 < seen_fraction < 0.6
+
+
+def test_band_distances_are_exact_within_the_band_and_ask_little_once_the_points_settle(knee_like):
+    """Points moved a little at a time (a rigid drift that slows, as a fit's), asked within a band that
+    narrows: wherever the full signed distance is within the band the answer is that distance, wherever it
+    is not the answer is outside the band too; points far from the surface are asked once."""
+    from knee.foundations.surfaces import BandDistances
+
+    q = SurfaceQuery.of(knee_like)
+    rng = np.random.default_rng(7)
+    v = np.asarray(knee_like.vertices)
+    pts = v[rng.integers(0, len(v), 3000)] + rng.normal(0.0, 30.0, (3000, 3))
+    band = BandDistances(q, len(pts))
+    for k in range(12):
+        R = Rotation.from_rotvec(rng.normal(0.0, 0.02 / (k + 1), 3)).as_matrix()
+        pts = (pts - pts.mean(axis=0)) @ R.T + pts.mean(axis=0) + rng.normal(0.0, 1.5 / (k + 1), 3)
+        b = 20.0 if k < 4 else 8.0
+        got, full = band.within(pts, b), q.signed_distance(pts)
+        inside = np.abs(full) < b
+        np.testing.assert_allclose(got[inside], full[inside], atol=1e-9)
+        assert np.all(np.abs(got[~inside]) >= b - 1e-3)
+        assert inside.sum() > 300 and (~inside).sum() > 300
+    assert band.asked < 0.5 * 12 * len(pts)  # the far points were not asked again and again
 
 
 def test_noise_model_statistics():
@@ -341,6 +366,32 @@ def test_connected_parts_split_a_cloud_where_it_has_gaps():
     lone = np.array([[0.0, 500.0, 400.0]])
     lab = connected_parts(np.vstack([a, b, bridge, lone]), 10.0)
     assert set(lab[:-1]) == {0} and lab[-1] == 1
+
+def test_near_cloud_passes_every_point_within_its_reach_and_few_beyond():
+    """A one-sided cloud (half a cylinder of 60 mm radius, 1 mm apart) with a far outlier, and query points
+    around the whole cylinder, on the cells' faces too (the cloud's own coordinates shifted by whole reaches):
+    every query with a cloud point within the reach (brute force) passes; those beyond twice the reach's
+    diagonal cannot; the unseen side (over 100 mm off) is left out. Bad reach or cloud: one-line errors."""
+    from knee.foundations.pointclouds import NearCloud
+
+    t, y = np.meshgrid(np.linspace(0.0, np.pi, 190), np.arange(0.0, 100.0, 1.0))
+    cloud = np.column_stack([60.0 * np.cos(t.ravel()), y.ravel(), 60.0 * np.sin(t.ravel())])
+    cloud = np.vstack([cloud, [[5000.0, -3000.0, 8000.0]]])  # an outlier far off costs no cells between
+    rng = np.random.default_rng(2)
+    q = np.vstack([rng.uniform([-90, -30, -90], [90, 130, 90], (20000, 3)),
+                   cloud[rng.choice(len(cloud), 2000)] + 10.0 * rng.integers(-2, 3, (2000, 3))])
+    near = NearCloud(cloud, 10.0)
+    mask = near(q)
+    d = cKDTree(cloud).query(q)[0]
+    assert mask[d < 10.0].all()
+    assert not mask[d > 2.0 * np.sqrt(3.0) * 10.0 + 1e-6].any()
+    assert not mask[(q[:, 2] < -40.0) & (d > 40.0)].any()
+    assert mask[d < 10.0].size > 2000 and (~mask).sum() > 5000
+    with pytest.raises(KneeInputError, match="reach must be positive"):
+        NearCloud(cloud, 0.0)
+    with pytest.raises(KneeInputError, match="non-empty"):
+        NearCloud(np.zeros((0, 3)), 10.0)
+
 
 @pytest.fixture(scope="module")
 def flying_scene(knee_like):

@@ -67,6 +67,36 @@ def test_surface_forces_and_the_adaptive_reference_distance(knee_model):
     np.testing.assert_allclose(all_pts.matrix() @ p.ravel(), all_pts.apply(p).ravel(), atol=1e-9)
 
 
+def test_surface_forces_search_only_near_the_cloud_and_find_the_same_springs(knee_model):
+    """The forces, the active points and the stiffness with the search left to the points near the cloud
+    equal those of a plain bounded search over every skin point, at every reference distance the phase
+    passes through (a one-sided cloud: the skin's front, moved and roughened, so that skin points lie at
+    every distance from it)."""
+    from scipy.spatial import cKDTree
+
+    m = knee_model
+    skin = m.skin_vertices
+    rng = np.random.default_rng(5)
+    cloud = skin[skin[:, 0] > -5.0] + [4.0, 0.0, 0.0] + rng.normal(0.0, 2.0, (int((skin[:, 0] > -5.0).sum()), 3))
+    sf = SurfaceForces(m.grid, skin, cloud, k=2.0)
+    x = m.grid.X + rng.normal(0.0, 1.0, m.grid.X.shape)
+    tree = cKDTree(cloud)
+    p = sf.map.apply(x)
+    for _ in range(3):
+        ref = sf.reference
+        d, j = tree.query(p, distance_upper_bound=ref)
+        active = d < ref
+        f = np.zeros_like(p)
+        f[active] = 2.0 * (cloud[j[active]] - p[active])
+        np.testing.assert_array_equal(sf.forces(x), sf.map.apply_transpose(f))
+        np.testing.assert_array_equal(sf.active, active)
+        assert 0 < active.sum() < len(p)
+    sf.reference = 3.0
+    d = tree.query(p, distance_upper_bound=3.0)[0]
+    sf.forces(x)
+    np.testing.assert_array_equal(sf.active, d < 3.0)
+
+
 def test_target_points_have_footprints(knee_model, volunteer):
     from knee.app.experiments.cases import model_targets
 

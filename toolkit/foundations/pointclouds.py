@@ -260,6 +260,49 @@ def thinned_evenly(points, most: int) -> np.ndarray:
         h *= 1.25
 
 
+class NearCloud:
+    """Which query points may lie within ``reach`` (mm) of a point cloud: an exact, cheap pre-test for a
+    bounded nearest-neighbour search. The cloud's points mark the cells of a grid of edge ``reach`` they
+    fall in, and every cell next to a marked one (its 26 neighbours); a query point in an unmarked cell has
+    no cloud point within ``reach`` (some axis puts a whole cell between them), so only the marked ones need
+    the search. A k-d tree's own bound is slow for points far from a cloud that wraps around them (the one-
+    sided depth cloud of a leg and the skin's unseen side: its boxes overlap the leg's inside). The cells
+    are kept as sorted packed keys, not a dense grid, so that a far outlier costs nothing."""
+
+    def __init__(self, points, reach: float):
+        if not reach > 0.0:
+            raise KneeInputError(f"the reach must be positive, got {reach}")
+        pts = np.asarray(points, float)
+        if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+            raise KneeInputError(f"the cloud must be a non-empty (P, 3) array, got shape {pts.shape}")
+        self.edge = float(reach) * (1.0 + 1e-9)  # rounding at a cell's face stays on the safe side
+        self.origin = pts.min(axis=0) - self.edge  # one empty cell of margin below ...
+        ijk = np.floor((pts - self.origin) / self.edge).astype(np.int64)
+        self.span = ijk.max(axis=0) + 2  # ... and above
+        if float(np.prod(self.span.astype(float))) >= 2.0 ** 62:
+            raise KneeInputError(f"the cloud spans too many cells of {reach} mm to index "
+                                 f"({' x '.join(str(int(n)) for n in self.span)})")
+        marked = np.unique(self._pack(ijk))
+        ijk = np.stack([marked // (self.span[1] * self.span[2]), marked // self.span[2] % self.span[1],
+                        marked % self.span[2]], axis=1)
+        steps = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+        cells = (ijk[:, None, :] + steps[None]).reshape(-1, 3)  # the marked cells and their neighbours
+        self.keys = np.unique(self._pack(cells))
+
+    def _pack(self, ijk) -> np.ndarray:
+        return (ijk[:, 0] * self.span[1] + ijk[:, 1]) * self.span[2] + ijk[:, 2]
+
+    def __call__(self, queries) -> np.ndarray:
+        """A mask (Q,): True where a query point (Q, 3) may have a cloud point within the reach."""
+        ijk = np.floor((np.asarray(queries, float) - self.origin) / self.edge)
+        inside = np.all((ijk >= 0) & (ijk < self.span), axis=1)
+        out = np.zeros(len(ijk), bool)
+        keys = self._pack(ijk[inside].astype(np.int64))
+        at = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
+        out[inside] = self.keys[at] == keys
+        return out
+
+
 def icp(source_points, target_points, init=None, max_distance: float = 20.0, iterations: int = 60,
         target_normals=None, point_to_point: bool = False):
     """Rigid registration of ``source_points`` onto ``target_points`` (point-to-plane ICP, open3d; or

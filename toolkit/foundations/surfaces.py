@@ -52,6 +52,30 @@ class SurfaceQuery:
         return r["points"].numpy().astype(float), r["primitive_normals"].numpy().astype(float)
 
 
+class BandDistances:
+    """Signed distances of moving points to a surface (a :class:`SurfaceQuery`), asked only where they may
+    lie within a band: an iterative fit that moves a cloud a little at a time and keeps the points within
+    ``band`` of the surface needs the distances of few of them. Each point's distance is kept with where it
+    was computed; a point that has since moved by less than that distance's excess over the band is still
+    outside it (a distance changes by no more than the point moves), so it is not asked again."""
+
+    def __init__(self, query: SurfaceQuery, n: int):
+        self.query = query
+        self.known = np.zeros(n)  # nothing known yet: every point is asked
+        self.at = np.zeros((n, 3))
+        self.asked = 0
+
+    def within(self, points, band: float) -> np.ndarray:
+        """(P, 3) -> (P,) the signed distances of the points, exact wherever they are below ``band`` in size;
+        ``inf`` for points known to be at least ``band`` from the surface."""
+        p = np.asarray(points, float)
+        ask = np.abs(self.known) - np.linalg.norm(p - self.at, axis=1) < band + 1e-3  # 1e-3: float32 queries
+        self.known[ask] = self.query.signed_distance(p[ask])
+        self.at[ask] = p[ask]
+        self.asked += int(ask.sum())
+        return np.where(ask, self.known, np.inf)
+
+
 def _fill_holes(vertices: np.ndarray, faces: np.ndarray):
     """Close each boundary loop of a triangle mesh with a fan around the loop's centroid (new faces wound
     like their neighbours). Returns (vertices, faces), or None when the boundary is not a set of simple
