@@ -1,6 +1,7 @@
 """A subject folder's knee as the association model needs it (:class:`knee.models.fem.anatomy.KneeAnatomy`):
 the CT bones and skin in the femur's anatomical frame (from the CT landmarks), cut to a band around the
-knee, with the collateral ligaments' insertions taken, in this order, from:
+knee (a denser skin coarsened to :data:`knee.models.fem.anatomy.SKIN_VERTICES_MOST` vertices), with the
+collateral ligaments' insertions taken, in this order, from:
 
 1. the CT attachment areas ``ct/areas/mcl_femur``, ``mcl_tibia``, ``lcl_femur``, ``lcl_tibia`` (centroids);
 2. the prior (a fitted parameter set): its MCL link (the LCL is then placed where its length varies least
@@ -25,6 +26,7 @@ from knee.models.fem.anatomy import (
     clip_anatomy,
     clip_bones_to_skin,
     default_collaterals,
+    working_skin,
 )
 from knee.models.mechanism.params import MechanismParams
 
@@ -57,7 +59,7 @@ def subject_anatomy(subject: Subject, prior: MechanismParams | None = None, widt
     if anatomy.mcl is None and prior is not None:
         link = prior.link("mcl")
         anatomy = replace(anatomy, mcl=np.vstack([link.femur, transform_points(anatomy.tibia_pose, link.tibia[None])[0]]))
-    anatomy = clip_anatomy(clip_bones_to_skin(anatomy), widths)
+    anatomy = working_skin(clip_anatomy(clip_bones_to_skin(anatomy), widths))
     if anatomy.mcl is None or (anatomy.lcl is None and prior is None):
         mcl, lcl = default_collaterals(anatomy)
         anatomy = replace(anatomy, mcl=anatomy.mcl if anatomy.mcl is not None else mcl,

@@ -136,6 +136,38 @@ def test_a_subject_without_a_skin_is_refused(case, tmp_path):
                            "--out", tmp_path / "o"), "no ct/skin.stl")
 
 
+def test_a_densely_segmented_skin_is_coarsened_to_the_working_count_and_keeps_its_shape(case, tmp_path):
+    """The subject's skin split into 16 times as many faces (the same surface, as a fine segmentation would
+    carry it): the anatomy's skin comes down to at most SKIN_VERTICES_MOST vertices, closed, its surface
+    within 0.5 mm of the given one both ways; the model built from it works with that skin. The skin as
+    given (under the count) is kept as it is."""
+    import shutil
+
+    import trimesh
+
+    from knee.fitting.subject import load_subject
+    from knee.fitting.subject_anatomy import subject_anatomy
+    from knee.foundations.surfaces import SurfaceQuery
+    from knee.models.fem.anatomy import SKIN_VERTICES_MOST
+    from knee.models.fem.scene import build_knee_model
+
+    plain = subject_anatomy(load_subject(case["dir"]))
+    assert len(plain.skin.vertices) < SKIN_VERTICES_MOST
+    d = tmp_path / "dense"
+    shutil.copytree(case["dir"], d)
+    skin = trimesh.load(d / "ct" / "skin.stl")
+    v, f = trimesh.remesh.subdivide(*trimesh.remesh.subdivide(skin.vertices, skin.faces))
+    trimesh.Trimesh(v, f).export(d / "ct" / "skin.stl")
+    dense = subject_anatomy(load_subject(d))
+    assert len(v) > 2 * SKIN_VERTICES_MOST
+    assert 0.8 * SKIN_VERTICES_MOST <= len(dense.skin.vertices) <= SKIN_VERTICES_MOST and dense.skin.is_watertight
+    fine = trimesh.Trimesh(*trimesh.remesh.subdivide(*trimesh.remesh.subdivide(plain.skin.vertices, plain.skin.faces)))
+    assert np.abs(SurfaceQuery.of(plain.skin).signed_distance(dense.skin.vertices)).max() < 0.5
+    assert np.abs(SurfaceQuery.of(dense.skin).signed_distance(fine.vertices)).max() < 0.5
+    model = build_knee_model(dense)
+    assert len(model.skin_vertices) == len(dense.skin.vertices)
+
+
 def test_compare_on_a_subject_with_a_measured_motion(case, tmp_path):
     """``knee compare SUBJECT --prior --truth-motion``: the methods on the subject's own knee, the truth
     posed by rows of a measured motion (here the synthetic subject's own), the points in the camera's

@@ -39,7 +39,7 @@ from knee.foundations.conventions import invert_poses, pose_to_joint, transform_
 from knee.foundations.errors import KneeError, KneeInputError
 from knee.foundations.geometry import end_width, epicondyles
 from knee.foundations.pointclouds import thinned_evenly
-from knee.foundations.surfaces import SurfaceQuery, clip_to_slab, closed_surface
+from knee.foundations.surfaces import SurfaceQuery, clip_to_slab, closed_surface, decimated
 
 #: How far (mm) a bone vertex may lie outside the skin before the anatomy is refused.
 SKIN_TOLERANCE_MM = 0.5
@@ -52,6 +52,12 @@ BONE_POINTS_MOST = 8000
 CLEARANCE_REACH_MM = 10.0
 #: The band of a longer scan kept around the joint line, in femur widths above and below it.
 BAND_WIDTHS = 2.5
+#: Most vertices of the skin the model works with (:func:`working_skin`). What the skin costs grows with
+#: them: a spring per vertex in the FEM's surface phase, the flexion estimate's posed knee rebuilt at each
+#: angle, the tibia's correction's queries. A CT's skin segmented at 1-2 mm carries about 100,000 over
+#: such a band; the phantom's, the Visible Human's and lenhart2015's carried skin 1,300, 5,400 and 8,200,
+#: and 10,000 vertices over a knee's band still put one every 3-4 mm, against grid cells of 20-30 mm.
+SKIN_VERTICES_MOST = 10_000
 #: The thigh region (held, registered) starts this many femur widths above the joint line...
 THIGH_FROM_WIDTHS = 0.8
 #: ... or, on a shorter scan, at this fraction of the height above the joint line from the top.
@@ -166,6 +172,15 @@ def clip_anatomy(anatomy: KneeAnatomy, widths: float = BAND_WIDTHS) -> KneeAnato
     femur = clip_to_slab(anatomy.femur, o, up, (widths - 0.05) * w, (widths - 0.05) * w)
     tibia = clip_to_slab(anatomy.tibia, o, up, (widths - 0.05) * w, (widths - 0.05) * w)
     return replace(anatomy, femur=femur, tibia=tibia, skin=skin)
+
+
+def working_skin(anatomy: KneeAnatomy, most: int = SKIN_VERTICES_MOST) -> KneeAnatomy:
+    """The anatomy with its skin coarsened (quadric decimation, kept closed) to about ``most`` vertices
+    where it has more (:data:`SKIN_VERTICES_MOST`); unchanged otherwise. A closed surface has about twice
+    as many faces as vertices."""
+    if len(anatomy.skin.vertices) <= most:
+        return anatomy
+    return replace(anatomy, skin=decimated(anatomy.skin, 2 * most - 4, "skin"))
 
 
 def clip_bones_to_skin(anatomy: KneeAnatomy) -> KneeAnatomy:

@@ -33,7 +33,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-import open3d as o3d
 import scipy.sparse as sp
 import trimesh
 from scipy.spatial import Delaunay, cKDTree
@@ -41,7 +40,7 @@ from scipy.spatial.transform import Rotation
 
 from knee.foundations.conventions import transform_points
 from knee.foundations.errors import KneeError, KneeInputError
-from knee.foundations.surfaces import SurfaceQuery
+from knee.foundations.surfaces import SurfaceQuery, decimated
 from knee.models.fem.bones import tet_quality
 from knee.models.fem.factor import SparseFactor
 
@@ -108,19 +107,7 @@ def _spaced(points: np.ndarray, spacing: float, seed: int) -> np.ndarray:
 def coarsened_skin(skin: trimesh.Trimesh, edge: float) -> trimesh.Trimesh:
     """The skin's triangulation coarsened (quadric decimation) to about ``edge`` mm edges, kept closed."""
     n_faces = int(max(200, round(4.0 * skin.area / (math.sqrt(3.0) * edge * edge))))
-    if n_faces >= len(skin.faces):
-        return skin.copy()
-    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(skin.vertices, float)),
-                                  o3d.utility.Vector3iVector(np.asarray(skin.faces, np.int32)))
-    m = m.simplify_quadric_decimation(n_faces)
-    m.remove_degenerate_triangles()
-    m.remove_unreferenced_vertices()
-    out = trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.triangles), process=True)
-    if not out.is_watertight:
-        trimesh.repair.fill_holes(out)
-    if not out.is_watertight:
-        raise KneeInputError("the skin could not be coarsened into a closed surface for the tissue mesh")
-    return out
+    return decimated(skin, n_faces, "skin (for the tissue mesh)")
 
 
 @dataclass

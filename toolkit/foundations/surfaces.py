@@ -128,6 +128,25 @@ def closed_surface(mesh: trimesh.Trimesh, what: str = "surface") -> trimesh.Trim
     return fixed
 
 
+def decimated(mesh: trimesh.Trimesh, faces: int, what: str = "surface") -> trimesh.Trimesh:
+    """The closed mesh coarsened by quadric decimation (open3d) to about ``faces`` triangles, kept closed
+    (small holes the decimation leaves are filled); returned as a copy when it has no more than that.
+    Raises :class:`KneeInputError` naming ``what`` when the result cannot be closed."""
+    if faces >= len(mesh.faces):
+        return mesh.copy()
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(mesh.vertices, float)),
+                                  o3d.utility.Vector3iVector(np.asarray(mesh.faces, np.int32)))
+    m = m.simplify_quadric_decimation(int(faces))
+    m.remove_degenerate_triangles()
+    m.remove_unreferenced_vertices()
+    out = trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.triangles), process=True)
+    if not out.is_watertight:
+        trimesh.repair.fill_holes(out)
+    if not out.is_watertight:
+        raise KneeInputError(f"the {what} could not be coarsened into a closed surface")
+    return out
+
+
 def clip_to_slab(mesh: trimesh.Trimesh, origin, axis, below: float, above: float) -> trimesh.Trimesh:
     """The part of a closed mesh between two planes normal to ``axis`` (3,), at ``origin - below * axis``
     and ``origin + above * axis`` (mm), closed by the planes' cross-sections (a boolean intersection with a
