@@ -97,6 +97,33 @@ def test_surface_forces_search_only_near_the_cloud_and_find_the_same_springs(kne
     np.testing.assert_array_equal(sf.active, d < 3.0)
 
 
+def test_surface_springs_spread_by_area_pull_a_skin_alike_however_finely_it_is_triangulated(knee_model):
+    """The phantom's skin and the same surface split into four times as many faces, both 3 mm from a dense
+    cloud (the fine skin moved along x): with springs spread by area, the pull on the grid (its resultant)
+    is the same for both; with a spring per vertex, the fine skin pulls about four times as hard. The areas add up to the skin's; apply and matrix agree."""
+    import trimesh
+
+    from knee.models.fem.forces import SKIN_AREA_PER_SPRING_MM2, skin_point_areas
+
+    m = knee_model
+    coarse = trimesh.Trimesh(m.skin_vertices, m.skin_faces, process=False)
+    fine = trimesh.Trimesh(*trimesh.remesh.subdivide(coarse.vertices, coarse.faces), process=False)
+    cloud = trimesh.Trimesh(*trimesh.remesh.subdivide(fine.vertices, fine.faces)).vertices + [3.0, 0.0, 0.0]
+    pulls = {}
+    for name, skin in (("coarse", coarse), ("fine", fine)):
+        a = skin_point_areas(skin.vertices, skin.faces)
+        assert a.sum() == pytest.approx(skin.area, rel=1e-9)
+        by_area = SurfaceForces(m.grid, skin.vertices, cloud, k=2.0, weights=a / SKIN_AREA_PER_SPRING_MM2)
+        per_vertex = SurfaceForces(m.grid, skin.vertices, cloud, k=2.0)
+        pulls[name] = (by_area.forces(m.grid.X).sum(axis=0)[0], per_vertex.forces(m.grid.X).sum(axis=0)[0])
+        p = np.random.default_rng(1).normal(size=m.grid.X.shape)
+        np.testing.assert_allclose(by_area.matrix() @ p.ravel(), by_area.apply(p).ravel(), atol=1e-9)
+    assert pulls["fine"][0] == pytest.approx(pulls["coarse"][0], rel=0.05)
+    assert pulls["fine"][1] / pulls["coarse"][1] > 3.5
+    with pytest.raises(ValueError, match="weights"):
+        SurfaceForces(m.grid, coarse.vertices, cloud, weights=np.ones(3))
+
+
 def test_target_points_have_footprints(knee_model, volunteer):
     from knee.app.experiments.cases import model_targets
 

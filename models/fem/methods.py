@@ -68,7 +68,7 @@ from knee.foundations.pointclouds import dominant_planes, icp, icp_held, voxel_d
 from knee.models.fem.anatomy import bone_clearance, bone_queries, in_contact
 from knee.models.fem.elements import HEX_CORNERS, hex_inverted
 from knee.models.fem.fields import DisplacementTethers, MappedSprings, affine_point_map
-from knee.models.fem.forces import BoneForces, SurfaceForces
+from knee.models.fem.forces import SKIN_AREA_PER_SPRING_MM2, BoneForces, SurfaceForces, skin_point_areas
 from knee.models.fem.mapping import TrilinearMapping
 from knee.models.fem.scene import AssociationModel, bone_cell_masks, knee_angles
 from knee.models.mechanism.solver import Mechanism
@@ -1054,7 +1054,8 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
                 T_world = T_world @ small_pose(np.r_[np.zeros(3), -d])
                 steps += move_tibia(model, T_tib[None])
             stages["apart"] = (T_world, T_tib)
-        surf = SurfaceForces(model.grid, model.skin_vertices, pts_model, k=2.0)
+        surf = SurfaceForces(model.grid, model.skin_vertices, pts_model, k=2.0,
+                             weights=skin_point_areas(model.skin_vertices, model.skin_faces) / SKIN_AREA_PER_SPRING_MM2)
         s.fields.append(surf)
         links = None
         if method == "links":
