@@ -54,9 +54,10 @@ def test_example_fem_with_prior():
     # the collateral springs rebased with the tissue: 2.545 mm, 3.660 mm, the flexion 0.33 deg off; the bones
     # slid apart where they overlap: the same, they do not here; the virtual camera's pixel centres at whole
     # pixel coordinates, its rays half a pixel over: 2.605 mm, 3.764 mm, the correction 0.74 deg, the depth
-    # noise falling on other points of the skin)
-    assert r["footprints_mm"] == pytest.approx(2.605, abs=0.05)
-    assert r["epiphysis_mm"] == pytest.approx(3.764, abs=0.05)
+    # noise falling on other points of the skin; the surface springs spread by skin area, the phantom's coarse
+    # skin's springs 3.2 times a vertex's: 2.644 mm, 3.863 mm)
+    assert r["footprints_mm"] == pytest.approx(2.644, abs=0.05)
+    assert r["epiphysis_mm"] == pytest.approx(3.863, abs=0.05)
     assert r["tibia_correction_deg"] == pytest.approx(0.74, abs=0.1)
 
 
