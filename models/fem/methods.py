@@ -965,6 +965,10 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     ``flexion_skin``: how the flexion estimate poses a subject's skin, "blend" or "fem" (:func:`skin_model`).
     ``weigh_axial``: the thigh's placement along and about its axis weighed against the whole skin's by
     their jackknife spreads (:func:`place_along_thigh`); off: the thigh's kept as it is.
+    The surface phase's springs are spread by skin area (:data:`knee.models.fem.forces.SKIN_AREA_PER_SPRING_MM2`),
+    not one per vertex as in the paper's method: measured on lenhart2015's carried skin (a vertex per 12 mm^2,
+    its springs 3.6 times as stiff per mm^2 as the Visible Human's), (iii) 2.16 -> 1.94 mm at 0-1 mm skin
+    mismatch over five seeds (BENCHMARKS.md).
     ``apart_share``: where the placed bones overlap more than at the scan, they are slid apart along the
     tibia's axis (:func:`keep_bones_apart`) before the surface phase, the femur (with the cloud) taking
     this share of the slide (:data:`APART_FEMUR_SHARE`) and the tibia the rest; None: left as placed."""
