@@ -18,6 +18,8 @@ from pathlib import Path
 
 
 def main() -> int:
+    from knee.app.experiments.case_set import VH_SKIN_BAND_WIDTHS
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True)
     ap.add_argument("--seed", type=int, default=0)
@@ -26,9 +28,9 @@ def main() -> int:
                     help="any of phantom, visible-human-male, lenhart2015 (its MRI bones with the Visible Human's "
                          "skin carried over), comma-separated")
     ap.add_argument("--families", default="mechanism+deviation,measured")
-    ap.add_argument("--skin-band", type=float, default=3.0, metavar="WIDTHS",
+    ap.add_argument("--skin-band", type=float, default=VH_SKIN_BAND_WIDTHS, metavar="WIDTHS",
                     help="how far (femur widths) either side of the joint line the Visible Human's skin and bones "
-                         "are kept (3; 1 stands for a short scan)")
+                         f"are kept ({VH_SKIN_BAND_WIDTHS:g}; 1 stands for a short scan)")
     ap.add_argument("--patella", action="store_true",
                     help="the truth's tissue holds the subject's patella, moved by the truth mechanism's PF motion")
     ap.add_argument("--flying", type=float, default=0.0,

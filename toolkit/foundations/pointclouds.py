@@ -283,11 +283,10 @@ class NearCloud:
             raise KneeInputError(f"the cloud spans too many cells of {reach} mm to index "
                                  f"({' x '.join(str(int(n)) for n in self.span)})")
         marked = np.unique(self._pack(ijk))
-        ijk = np.stack([marked // (self.span[1] * self.span[2]), marked // self.span[2] % self.span[1],
-                        marked % self.span[2]], axis=1)
+        # the marked cells and their neighbours: with a cell of margin on every side a neighbour's key is the
+        # cell's key plus the neighbour's packed offset (no index wraps)
         steps = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
-        cells = (ijk[:, None, :] + steps[None]).reshape(-1, 3)  # the marked cells and their neighbours
-        self.keys = np.unique(self._pack(cells))
+        self.keys = np.unique((marked[:, None] + self._pack(steps)[None]).ravel())
 
     def _pack(self, ijk) -> np.ndarray:
         return (ijk[:, 0] * self.span[1] + ijk[:, 1]) * self.span[2] + ijk[:, 2]
