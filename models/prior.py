@@ -747,7 +747,7 @@ class TibiaCorrection:
         return self.xi[3:]
 
 
-def _right_jacobian(w) -> np.ndarray:
+def right_jacobian(w) -> np.ndarray:
     """The right Jacobian (3, 3) of the rotation vector ``w``: R(w + dw) = R(w) exp(J_r(w) dw) to first order."""
     th = float(np.linalg.norm(w))
     K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
@@ -821,7 +821,7 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
         # a change dxi of the rotation vector turns the tibia by dw = J_r(xi) dxi in its current frame (the
         # rotation's right Jacobian) and one of the translation moves it by R^T dt there: a point, in the
         # tibia's current frame, moves by -(dw x p) - R^T dt
-        J = np.hstack([-np.cross(p, nrm) @ _right_jacobian(xi[:3]), -nrm @ D[:3, :3].T])
+        J = np.hstack([-np.cross(p, nrm) @ right_jacobian(xi[:3]), -nrm @ D[:3, :3].T])
         H = J.T @ J / point_sd_mm ** 2 + np.diag(prior_w)
         g = J.T @ r / point_sd_mm ** 2 + prior_w * xi
         dxi = -np.linalg.solve(H, g)

@@ -1,8 +1,9 @@
 """How much of the footprint error at 1 and 2 mm skin mismatch is the mismatch itself, on a case set
 (``scripts/build_case_set.py``): each such case's cloud registered rigidly onto the same view at 0 mm (the
-truth's own skin), each bone from its side of the knee ("separate") and the leg as one body with the bones at
-their true relative pose ("joined"; perfect skin and kinematics), and the flexion error of the separate
-registration. With ``--compare`` (a ``knee compare`` CSV of the same case set), the methods' errors on the
+truth's own skin), each bone from its side of the knee ("separate"), the leg as one body with the bones at
+their true relative pose ("joined"; perfect skin and kinematics) and with the relative pose the case set's
+kinematic prior gives, corrected as far as the points show it ("prior"; perfect skin, the methods' kinematics),
+and the flexion errors of the separate and the prior registrations. With ``--compare`` (a ``knee compare`` CSV of the same case set), the methods' errors on the
 same cases beside the floors.
 
     .venv/bin/python scripts/skin_mismatch_floor.py CASE_SET [--compare COMPARE.csv [--plot OUT.png]]
@@ -86,31 +87,35 @@ def main() -> int:
     if args.csv:
         with open(args.csv, "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow([*(fl.name for fl in dataclasses.fields(rows[0])), "separate_mm", "joined_mm", *methods])
+            w.writerow([*(fl.name for fl in dataclasses.fields(rows[0])), "separate_mm", "joined_mm", "prior_mm",
+                        *methods])
             for r in rows:
-                w.writerow([*dataclasses.astuple(r), f"{r.separate_mm:.4g}", f"{r.joined_mm:.4g}",
+                w.writerow([*dataclasses.astuple(r), f"{r.separate_mm:.4g}", f"{r.joined_mm:.4g}", f"{r.prior_mm:.4g}",
                             *(f"{compared.get((r.case, m), float('nan')):.4g}" for m in methods)])
     if args.plot:
         from knee.app.reports.case_set import plot_floor
 
         plot_floor(rows, {case: e for (case, m), e in compared.items() if m == "links"}, args.plot)
-    head = ["case", "floor: separate (femur / tibia)", "floor: joined", "separate's flexion error (deg)",
-            *(METHOD_LABELS[m] for m in methods)]
+    head = ["case", "floor: separate (femur / tibia)", "floor: joined", "floor: prior (femur / tibia)",
+            "separate's flexion error (deg)", "prior's flexion error (deg)", *(METHOD_LABELS[m] for m in methods)]
     print("| " + " | ".join(head) + " |")
     print("|---|" + "---:|" * (len(head) - 1))
     for r in rows:
         cells = [f"{r.separate_mm:.2f} ({r.separate_femur_mm:.2f} / {r.separate_tibia_mm:.2f})", f"{r.joined_mm:.2f}",
-                 f"{r.separate_flexion_error_deg:+.2f}",
+                 f"{r.prior_mm:.2f} ({r.prior_femur_mm:.2f} / {r.prior_tibia_mm:.2f})",
+                 f"{r.separate_flexion_error_deg:+.2f}", f"{r.prior_flexion_error_deg:+.2f}",
                  *(f"{compared[(r.case, m)]:.2f}" if (r.case, m) in compared else "-" for m in methods)]
         print(f"| {r.case} | " + " | ".join(cells) + " |")
     print()
-    print("| mismatch | cases | floor: separate | floor: joined | separate's flexion within 2 deg | "
-          + " | ".join(METHOD_LABELS[m] for m in methods) + " |")
-    print("|---:|---:|---:|---:|---:|" + "---:|" * len(methods))
+    print("| mismatch | cases | floor: separate | floor: joined | floor: prior | separate's flexion within 2 deg | "
+          "prior's flexion within 2 deg | " + " | ".join(METHOD_LABELS[m] for m in methods) + " |")
+    print("|---:|---:|---:|---:|---:|---:|---:|" + "---:|" * len(methods))
     for mm in sorted({r.mismatch_mm for r in rows}):
         g = [r for r in rows if r.mismatch_mm == mm]
         cells = [f"{statistics.median(r.separate_mm for r in g):.2f}", f"{statistics.median(r.joined_mm for r in g):.2f}",
-                 f"{sum(abs(r.separate_flexion_error_deg) <= 2.0 for r in g)} of {len(g)}"]
+                 f"{statistics.median(r.prior_mm for r in g):.2f}",
+                 f"{sum(abs(r.separate_flexion_error_deg) <= 2.0 for r in g)} of {len(g)}",
+                 f"{sum(abs(r.prior_flexion_error_deg) <= 2.0 for r in g)} of {len(g)}"]
         for m in methods:
             v = [compared[(r.case, m)] for r in g if (r.case, m) in compared]
             cells.append(f"{statistics.median(v):.2f}" if v else "-")

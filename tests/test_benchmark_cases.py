@@ -709,6 +709,57 @@ def test_skin_floor_recovers_a_known_motion_of_the_leg(small_case_set):
             assert np.linalg.norm(E[:3, :3] @ [0.0, anatomy.joint_y, 0.0] + E[:3, 3] - [0.0, anatomy.joint_y, 0.0]) < 0.1, kind
 
 
+def test_prior_floor_recovers_a_moved_leg_and_weighs_the_prior_against_the_points(small_case_set):
+    """The prior floor's estimate, given a prior whose path passes through the true relative pose: a clean cloud
+    moved rigidly by a known G puts both bones at G times their truth and the flexion at the truth's (a
+    femur step composed on the wrong side, a tibia point's normal left in the tibia's frame or the flexion's
+    derivative with the wrong sign would not). Given a prior whose tibia sits 3 mm lateral of the truth
+    (along the tibia's own axis of the flexion, which no flexion along the path can take back) and the exact
+    points: points weighed as exact (sd 0.05 mm) put the tibia at the truth; weighed as worthless (sd 1e4 mm)
+    leave it at the prior's 3 mm; an sd of the prior's own order (2 mm against the points' 20 mm) in between.
+    Dropping the prior's term, or weighing it the wrong way, would not."""
+    from knee.app.experiments.case_set import iter_cases
+    from knee.app.experiments.skin_floor import _cloud, prior_floor_poses
+    from knee.foundations.conventions import invert_poses, joint_to_pose, pose_to_joint, transform_points
+
+    (c, (anatomy, _, T_ct_model), _, _), = iter_cases(small_case_set, lambda c: c["mismatch_mm"] == 0)
+    clean = _cloud(small_case_set, c)
+    Tf = np.asarray(c["T_camera_femur_ct"]) @ T_ct_model
+    Tt = np.asarray(c["T_camera_tibia_ct"]) @ T_ct_model
+    rel_true = invert_poses(Tf) @ Tt @ anatomy.tibia_pose
+    tf_true = pose_to_joint(rel_true)
+
+    def through_truth(alphas, lateral_mm=0.0):
+        tf = np.tile(tf_true, (len(alphas), 1))
+        tf[:, 0] = alphas
+        off = np.eye(4)
+        off[2, 3] = lateral_mm
+        return joint_to_pose(tf) @ off
+
+    G = np.eye(4)
+    G[:3, :3] = Rotation.from_rotvec(np.radians([1.5, -1.0, 0.8])).as_matrix()
+    centre = transform_points(Tf, np.array([[0.0, anatomy.joint_y, 0.0]]))[0]
+    G[:3, 3] = [1.2, -0.8, 1.5] + centre - G[:3, :3] @ centre
+    Tf_e, Tt_e, alpha = prior_floor_poses(transform_points(G, clean), clean, Tf, Tt, anatomy.joint_y,
+                                          anatomy.tibia_pose, through_truth, 10.0)
+    assert alpha == pytest.approx(tf_true[0], abs=math.radians(0.2))
+    for T_est, T in ((Tf_e, Tf), (Tt_e, Tt)):
+        E = np.linalg.inv(G @ T) @ T_est
+        assert math.degrees(Rotation.from_matrix(E[:3, :3]).magnitude()) < 0.3
+        assert np.linalg.norm(E[:3, :3] @ [0.0, anatomy.joint_y, 0.0] + E[:3, 3] - [0.0, anatomy.joint_y, 0.0]) < 0.2
+
+    def relative_offset(sd):
+        Tf_e, Tt_e, _ = prior_floor_poses(clean, clean, Tf, Tt, anatomy.joint_y, anatomy.tibia_pose,
+                                          lambda a: through_truth(a, 3.0), sd)
+        rel = invert_poses(Tf_e) @ Tt_e @ anatomy.tibia_pose
+        return np.linalg.norm(rel[:3, 3] - rel_true[:3, 3])
+
+    exact, worthless, between = relative_offset(0.05), relative_offset(1e4), relative_offset(20.0)
+    assert exact < 0.3
+    assert worthless == pytest.approx(3.0, abs=0.15)
+    assert exact + 0.3 < between < worthless - 0.3
+
+
 def test_skin_floor_on_the_case_set_and_its_script(small_case_set, tmp_path, capsys, run_script):
     """The floor is measured on the cases whose view was rendered at 0 mm too (here the paper's at 1 mm),
     is nonzero (the mismatch field moves the registration) and comes out of the script as tables; a case
@@ -725,6 +776,8 @@ def test_skin_floor_on_the_case_set_and_its_script(small_case_set, tmp_path, cap
     r = rows[0]
     # the flexion error is the separate registration's (the joined one keeps the true relative pose: exactly 0)
     assert 0.05 < r.separate_mm < 6.0 and 0.05 < r.joined_mm < 6.0 and 1e-3 < abs(r.separate_flexion_error_deg) < 5.0
+    # the prior floor: the relative pose the prior's, off the truth's, so nonzero too, and its flexion error measured
+    assert 0.05 < r.prior_mm < 8.0 and 1e-3 < abs(r.prior_flexion_error_deg) < 5.0
     compare = tmp_path / "compare.csv"
     compare.write_text("case,method,femur_footprints_mm,tibia_footprints_mm\n"
                        "phantom-mechanism-40-1mm-paper,links,1.0,3.0\n")
@@ -764,14 +817,16 @@ def test_mismatch_targets_carry_the_floor_of_their_own_mismatch():
                        tibia_footprints_mm=fp, case=case, mismatch_mm=mm, shank_points_true=0)
 
     rows = [row("a0", 0.0, 1.0), row("a1", 1.0, 2.0), row("b1", 1.0, 9.0), row("a2", 2.0, 4.0), row("b2", 2.0, 6.0)]
-    floors = [SkinFloorRow("a1", "phantom", "measured", 1.0, 1.0, 2.0, 0.5, 0.5, 0.1),
-              SkinFloorRow("a2", "phantom", "measured", 2.0, 3.0, 5.0, 2.0, 3.0, -0.4),
-              SkinFloorRow("b2", "phantom", "measured", 2.0, 5.0, 7.0, 3.0, 4.0, 1.0)]
+    floors = [SkinFloorRow("a1", "phantom", "measured", 1.0, 1.0, 2.0, 0.5, 0.5, 0.1, 1.0, 1.4, 0.2),
+              SkinFloorRow("a2", "phantom", "measured", 2.0, 3.0, 5.0, 2.0, 3.0, -0.4, 2.0, 4.0, 0.3),
+              SkinFloorRow("b2", "phantom", "measured", 2.0, 5.0, 7.0, 3.0, 4.0, 1.0, 4.0, 6.0, 0.5)]
     low, high = targets(rows, floors)[:2]
     assert low.startswith("(iii) median footprint error at 0 and 1 mm skin mismatch: 2.00 mm over 3 cases")
     assert "at 1 mm, on the 1 views" in low and "gives 1.50 mm with each bone" in low and "0.50 mm with the" in low
+    assert "1.20 mm with the prior's kinematics" in low
     assert low.endswith("((iii) 2.00 mm there)")
     assert "at 2 mm, on the 2 views" in high and "gives 5.00 mm with each bone" in high and "3.00 mm with the" in high
+    assert "4.00 mm with the prior's kinematics" in high
     assert high.endswith("((iii) 5.00 mm there)")
     assert targets(rows)[1].endswith("NOT met")  # no floors measured: nothing added
 

@@ -252,7 +252,7 @@ def test_the_rotation_vectors_right_jacobian_against_finite_differences():
     rotation is, checked column by column against central differences, at a large and a tiny rotation."""
     from scipy.spatial.transform import Rotation
 
-    from knee.models.prior import _right_jacobian
+    from knee.models.prior import right_jacobian
 
     h = 1e-6
     for w in (np.array([0.3, -0.5, 0.2]), np.array([1e-10, 0.0, -2e-10])):
@@ -260,8 +260,8 @@ def test_the_rotation_vectors_right_jacobian_against_finite_differences():
         fd = np.column_stack([(R.inv() * Rotation.from_rotvec(w + h * e)).as_rotvec() / (2 * h)
                               - (R.inv() * Rotation.from_rotvec(w - h * e)).as_rotvec() / (2 * h)
                               for e in np.eye(3)])
-        np.testing.assert_allclose(_right_jacobian(w), fd, atol=1e-7)
-    assert np.abs(_right_jacobian(np.array([0.3, -0.5, 0.2])) - np.eye(3)).max() > 0.1  # not the identity there
+        np.testing.assert_allclose(right_jacobian(w), fd, atol=1e-7)
+    assert np.abs(right_jacobian(np.array([0.3, -0.5, 0.2])) - np.eye(3)).max() > 0.1  # not the identity there
 
 
 def test_the_tibia_correction_draws_in_a_shank_beyond_its_narrow_band(volunteer):

@@ -302,6 +302,20 @@ class NearCloud:
         return out
 
 
+#: The neighbourhood a point cloud's normals are estimated over (:func:`point_normals`): mm, and at most so many points.
+NORMAL_RADIUS_MM = 8.0
+NORMAL_NEIGHBOURS = 30
+
+
+def point_normals(points) -> np.ndarray:
+    """Unit normals (P, 3) of a point cloud ``points`` (P, 3), mm: each the least-varying direction of its
+    neighbours within :data:`NORMAL_RADIUS_MM` (at most :data:`NORMAL_NEIGHBOURS`; open3d), as the point-to-plane
+    ICP estimates them. The sign is arbitrary: the residuals they give are used squared."""
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, float)))
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS_MM, max_nn=NORMAL_NEIGHBOURS))
+    return np.asarray(pc.normals)
+
+
 def icp(source_points, target_points, init=None, max_distance: float = 20.0, iterations: int = 60,
         target_normals=None, point_to_point: bool = False):
     """Rigid registration of ``source_points`` onto ``target_points`` (point-to-plane ICP, open3d; or
@@ -320,10 +334,8 @@ def icp(source_points, target_points, init=None, max_distance: float = 20.0, ite
     if point_to_point:
         estimation = reg.TransformationEstimationPointToPoint()
     else:
-        if target_normals is None:
-            dst.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=8.0, max_nn=30))
-        else:
-            dst.normals = o3d.utility.Vector3dVector(np.asarray(target_normals, float))
+        dst.normals = o3d.utility.Vector3dVector(point_normals(target_points) if target_normals is None
+                                                 else np.asarray(target_normals, float))
         estimation = reg.TransformationEstimationPointToPlane()
     reg = reg.registration_icp(
         src, dst, max_distance, np.eye(4) if init is None else np.asarray(init, float), estimation,

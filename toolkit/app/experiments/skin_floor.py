@@ -10,38 +10,54 @@ the random field (and the two images' sensor noise). Two floors:
   femur's frame, the tibia by those below it in the true tibia's frame (a perfect skin, no knowledge of how
   the bones move together);
 - ``joined``: the whole cloud as one body, the tibia carried with the femur at its true relative pose (a
-  perfect skin and perfect kinematics: only the leg's pose unknown).
+  perfect skin and perfect kinematics: only the leg's pose unknown);
+- ``prior``: the whole cloud, the tibia's pose relative to the femur what the case set's kinematic prior
+  gives at a free flexion, corrected as far as the points show it (a maximum a posteriori estimate with the
+  prior's Gaussian, :data:`knee.models.prior.TIBIA_PRIOR_MM` and ``TIBIA_PRIOR_DEG`` per component, as
+  the methods' tibia correction weighs it; each point with the field's RMS as its error, inflated for the
+  field's correlation as :func:`knee.models.prior.effective_point_sd` inflates it): a perfect skin and the
+  kinematics the methods are given. This is the floor of a method that reads the bones from the skin
+  with this prior, whatever its tissue model.
 
 The separate registration's flexion error says the same of the flexion target.
 
 A method that registers skin gets below the separate floor only with knowledge of how the bones move
-together (a kinematic prior, which the joined floor has exactly), and below the joined one only with
-knowledge of the field itself (its statistics); they say how much of a method's error at a mismatch is the
-mismatch itself.
+together (a kinematic prior, which the joined floor has exactly and the prior floor as well as the case
+set's prior knows it), and below the joined one only with knowledge of the field itself (its statistics);
+they say how much of a method's error at a mismatch is the mismatch itself.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from knee.app.experiments.case_set import case_points_cam, iter_cases, read_case_set
 from knee.app.experiments.subject_cases import anatomy_targets
 from knee.foundations.conventions import invert_poses, matrix_to_cardan, pose_to_joint, transform_points
 from knee.foundations.errors import KneeInputError
-from knee.foundations.pointclouds import icp, voxel_downsample
+from knee.foundations.pointclouds import icp, point_normals, voxel_downsample
 from knee.models.evaluation import pose_errors
 from knee.models.fem.methods import initialise_from_prior, quasi_static, register_to_posed_skin, tibia_path
 from knee.models.fem.scene import build_knee_model
-from knee.models.prior import VOXEL_MM
+from knee.models.prior import (TIBIA_PRIOR_DEG, TIBIA_PRIOR_MM, VOXEL_MM, effective_point_sd, right_jacobian,
+                               small_pose)
 
 #: The ICP's reach (mm): the posed-skin registration's first reach, well beyond a 2 mm field.
 FLOOR_REACH_MM = 15.0
 FLOOR_ITERATIONS = 60
+#: The prior floor's Gauss-Newton: at most so many steps, and done when no step moves more than the tolerance
+#: (mm, rad).
+PRIOR_FLOOR_ITERATIONS = 40
+PRIOR_FLOOR_TOLERANCE = 1e-6
+#: rad: the step of the flexion's finite difference along the prior's path.
+PRIOR_FLOOR_DALPHA = 1e-4
 
 
 @dataclass
@@ -60,6 +76,9 @@ class SkinFloorRow:
     joined_femur_mm: float
     joined_tibia_mm: float
     separate_flexion_error_deg: float
+    prior_femur_mm: float = float("nan")
+    prior_tibia_mm: float = float("nan")
+    prior_flexion_error_deg: float = float("nan")
 
     @property
     def separate_mm(self) -> float:
@@ -68,6 +87,10 @@ class SkinFloorRow:
     @property
     def joined_mm(self) -> float:
         return 0.5 * (self.joined_femur_mm + self.joined_tibia_mm)
+
+    @property
+    def prior_mm(self) -> float:
+        return 0.5 * (self.prior_femur_mm + self.prior_tibia_mm)
 
 
 def _cloud(folder: Path, case: dict) -> np.ndarray:
@@ -100,6 +123,78 @@ def floor_poses(points, clean, T_cam_femur, T_cam_tibia, joint_y: float) -> dict
     Tf = _register(points, clean, T_cam_femur)
     return {"separate": (side["femur"], side["tibia"]),
             "joined": (Tf, Tf @ invert_poses(T_cam_femur) @ T_cam_tibia)}
+
+
+def prior_floor_poses(points, clean, T_cam_femur, T_cam_tibia, joint_y: float, tibia_pose, path, point_sd_mm: float,
+                      sigma_mm: float = TIBIA_PRIOR_MM, sigma_deg: float = TIBIA_PRIOR_DEG,
+                      reach_mm: float = FLOOR_REACH_MM) -> tuple[np.ndarray, np.ndarray, float]:
+    """The femur's and tibia's poses (4, 4; rest model coordinates to the camera) and the flexion (rad) that a
+    clean skin cloud ``clean`` (P, 3; camera frame, the bones at ``T_cam_femur``, ``T_cam_tibia``) matched to
+    ``points`` (Q, 3) gives with a kinematic prior: the femur's pose free; the tibia's anatomical frame in the
+    femur's ``path(alpha) @ small_pose(xi)``, ``path`` (n,) rad -> (n, 4, 4) the prior's poses along its
+    flexion (:func:`knee.models.fem.methods.tibia_path`), ``alpha`` free and the correction ``xi`` (rotation
+    vector, rad; translation, mm; in the tibia's frame) with the prior's Gaussian (sd ``sigma_deg`` per
+    rotation, ``sigma_mm`` per translation); the clean skin carried rigidly by each bone from its side of the
+    knee (the model frame's joint line ``joint_y``, mm, in each true bone's frame; ``tibia_pose``: the
+    tibia's frame in the femur's at the scan). The maximum a posteriori estimate, Gauss-Newton on the
+    point-to-plane distances (each point's error ``point_sd_mm``) of each point's nearest clean point within
+    ``reach_mm``, started from the true femur and the true flexion on the prior's path (a floor: the
+    estimate's start is the answer's)."""
+    points, clean = np.asarray(points, float), np.asarray(clean, float)
+    Tf, T_cam_tibia = np.asarray(T_cam_femur, float).copy(), np.asarray(T_cam_tibia, float)
+    A_true = T_cam_tibia @ np.asarray(tibia_pose, float)  # the tibia's anatomical frame to the camera
+    side_f = transform_points(invert_poses(Tf), points)[:, 1] > joint_y
+    side_t = transform_points(invert_poses(T_cam_tibia), points)[:, 1] < joint_y
+    q_f, q_t = points[side_f], points[side_t]
+    c_f = transform_points(invert_poses(Tf), clean)
+    c_f = c_f[c_f[:, 1] > joint_y]
+    c_t = transform_points(invert_poses(A_true), clean[transform_points(invert_poses(T_cam_tibia), clean)[:, 1] < joint_y])
+    if min(len(q_f), len(q_t), len(c_f), len(c_t)) < 10:
+        raise KneeInputError("the prior floor needs points on both sides of the knee (fewer than 10 on one side)")
+    n_f, n_t = point_normals(c_f), point_normals(c_t)
+    tree_f, tree_t = cKDTree(c_f), cKDTree(c_t)
+    alpha = float(pose_to_joint(invert_poses(Tf) @ A_true)[0])
+    xi = np.zeros(6)
+    prior_w = np.r_[[math.radians(sigma_deg) ** -2] * 3, [sigma_mm ** -2] * 3]
+
+    def tibia_local(v, a, S):
+        return transform_points(invert_poses(path(np.array([a]))[0] @ S), v)
+
+    for _ in range(PRIOR_FLOOR_ITERATIONS):
+        S = small_pose(xi)
+        M = path(np.array([alpha]))[0] @ S
+        v_f = transform_points(invert_poses(Tf), q_f)
+        v_t = transform_points(invert_poses(Tf), q_t)
+        u = transform_points(invert_poses(M), v_t)
+        d_f, i_f = tree_f.query(v_f, distance_upper_bound=reach_mm)
+        d_t, i_t = tree_t.query(u, distance_upper_bound=reach_mm)
+        kf, kt = np.isfinite(d_f), np.isfinite(d_t)
+        v_f, v_t, u = v_f[kf], v_t[kt], u[kt]
+        nf, nt = n_f[i_f[kf]], n_t[i_t[kt]]
+        r = np.r_[np.einsum("ij,ij->i", v_f - c_f[i_f[kf]], nf), np.einsum("ij,ij->i", u - c_t[i_t[kt]], nt)]
+        # a femur step D (Tf <- Tf D) moves a point, in the femur's frame, by -(dw x v) - dt; a tibia point's
+        # normal carried into the femur's frame is M_R n; the correction's step as in correct_tibia; the
+        # flexion's by a finite difference along the path
+        m = nt @ M[:3, :3].T
+        du = (tibia_local(v_t, alpha + PRIOR_FLOOR_DALPHA, S) - u) / PRIOR_FLOOR_DALPHA
+        J = np.zeros((len(r), 13))
+        J[:len(v_f), :3], J[:len(v_f), 3:6] = -np.cross(v_f, nf), -nf
+        J[len(v_f):, :3], J[len(v_f):, 3:6] = -np.cross(v_t, m), -m
+        J[len(v_f):, 6:9] = -np.cross(u, nt) @ right_jacobian(xi[:3])
+        J[len(v_f):, 9:12] = -nt @ S[:3, :3].T
+        J[len(v_f):, 12] = np.einsum("ij,ij->i", du, nt)
+        H = J.T @ J / point_sd_mm ** 2
+        H[6:12, 6:12] += np.diag(prior_w)
+        g = J.T @ r / point_sd_mm ** 2
+        g[6:12] += prior_w * xi
+        step = -np.linalg.solve(H, g)
+        Tf = Tf @ small_pose(step[:6])
+        xi = xi + step[6:12]
+        alpha += float(step[12])
+        if np.abs(step).max() < PRIOR_FLOOR_TOLERANCE:
+            break
+    A = Tf @ path(np.array([alpha]))[0] @ small_pose(xi)
+    return Tf, A @ invert_poses(np.asarray(tibia_pose, float)), alpha
 
 
 def _flexion_deg(T_cam_femur, T_cam_tibia, tibia_pose) -> float:
@@ -176,14 +271,20 @@ def skin_floor(folder, progress: Callable[[int, int, str], None] | None = None,
         tg = anatomy_targets(anatomy, prior)
         T_cam_femur = np.asarray(c["T_camera_femur_ct"]) @ T_ct_model
         T_cam_tibia = np.asarray(c["T_camera_tibia_ct"]) @ T_ct_model
-        poses = floor_poses(_cloud(folder, c), _cloud(folder, clean[_twin_key(c)]), T_cam_femur, T_cam_tibia,
-                            anatomy.joint_y)
+        points, twin = _cloud(folder, c), _cloud(folder, clean[_twin_key(c)])
+        poses = floor_poses(points, twin, T_cam_femur, T_cam_tibia, anatomy.joint_y)
+        mm = float(c["mismatch_mm"])
+        Tf, Tt, _ = prior_floor_poses(points, twin, T_cam_femur, T_cam_tibia, anatomy.joint_y, anatomy.tibia_pose,
+                                      lambda a: tibia_path(prior, anatomy, a), effective_point_sd(anatomy.width, mm))
+        poses["prior"] = (Tf, Tt)
         e = {k: pose_errors(tg, T_cam_femur, T_cam_tibia, Tf, Tt) for k, (Tf, Tt) in poses.items()}
-        rows.append(SkinFloorRow(c["id"], c["anatomy"], c["family"], float(c["mismatch_mm"]),
+        true_flexion = _flexion_deg(T_cam_femur, T_cam_tibia, anatomy.tibia_pose)
+        rows.append(SkinFloorRow(c["id"], c["anatomy"], c["family"], mm,
                                  e["separate"].femur.footprints.mean, e["separate"].tibia.footprints.mean,
                                  e["joined"].femur.footprints.mean, e["joined"].tibia.footprints.mean,
-                                 _flexion_deg(*poses["separate"], anatomy.tibia_pose)
-                                 - _flexion_deg(T_cam_femur, T_cam_tibia, anatomy.tibia_pose)))
+                                 _flexion_deg(*poses["separate"], anatomy.tibia_pose) - true_flexion,
+                                 e["prior"].femur.footprints.mean, e["prior"].tibia.footprints.mean,
+                                 _flexion_deg(*poses["prior"], anatomy.tibia_pose) - true_flexion))
     if progress:
         progress(len(rows), len(rows), "done")
     return rows

@@ -102,7 +102,7 @@ def groups(rows):
 
 def floor_clause(floors, mismatch_mm: float, rows) -> str:
     """What a perfect model reaches at one skin mismatch (:func:`knee.app.experiments.skin_floor.skin_floor`'s
-    rows): the medians of its two floors and (iii)'s on the same cases, or "" when none was measured."""
+    rows): the medians of its three floors and (iii)'s on the same cases, or "" when none was measured."""
     fl = [f for f in floors if f.mismatch_mm == mismatch_mm]
     if not fl:
         return ""
@@ -110,7 +110,8 @@ def floor_clause(floors, mismatch_mm: float, rows) -> str:
     ours = [mine[f.case] for f in fl if f.case in mine]
     return (f"; at {mismatch_mm:g} mm, on the {len(fl)} views also rendered at 0 mm, the truth's own skin registered rigidly gives "
             f"{_median(f.separate_mm for f in fl):.2f} mm with each bone read from its side of the knee and "
-            f"{_median(f.joined_mm for f in fl):.2f} mm with the bones' relative pose known"
+            f"{_median(f.joined_mm for f in fl):.2f} mm with the bones' relative pose known, "
+            f"{_median(f.prior_mm for f in fl):.2f} mm with the prior's kinematics"
             + (f" ((iii) {_median(ours):.2f} mm there)" if ours else ""))
 
 
@@ -252,8 +253,9 @@ def plot(rows, methods, path, title: str = "") -> None:
 def plot_floor(floors, errors: dict, path, label: str = "(iii) links") -> None:
     """A method's footprint error per case (``errors``: {case: mm}) against the skin mismatch's floors on
     that case (:func:`knee.app.experiments.skin_floor.skin_floor`'s rows): each bone read from its side
-    of the knee (filled) and the leg as one body with the bones' relative pose known (open), coloured by
-    the mismatch; on the diagonal the method is exactly at the floor."""
+    of the knee (filled), the leg as one body with the bones' relative pose known (open) and with the
+    prior's kinematics (crosses), coloured by the mismatch; on the diagonal the method is exactly at the
+    floor."""
     fig, ax = plt.subplots(figsize=(5.2, 4.8))
     colours = {1.0: "tab:blue", 2.0: "tab:red"}
     top = 1.0
@@ -264,7 +266,8 @@ def plot_floor(floors, errors: dict, path, label: str = "(iii) links") -> None:
         ax.scatter([f.separate_mm for f in fl], y, s=22, color=c, label=f"{mm:g} mm: each bone from its side")
         ax.scatter([f.joined_mm for f in fl], y, s=22, facecolors="none", edgecolors=c,
                    label=f"{mm:g} mm: bones' relative pose known")
-        top = max([top, *y, *(f.separate_mm for f in fl)])
+        ax.scatter([f.prior_mm for f in fl], y, s=22, marker="x", color=c, label=f"{mm:g} mm: the prior's kinematics")
+        top = max([top, *y, *(f.separate_mm for f in fl), *(f.prior_mm for f in fl if np.isfinite(f.prior_mm))])
     ax.plot([0, top * 1.05], [0, top * 1.05], color="k", lw=1, ls=":")
     ax.set_xlim(0, top * 1.05)
     ax.set_ylim(0, top * 1.05)
