@@ -107,9 +107,10 @@ def main() -> int:
                  *(f"{compared[(r.case, m)]:.2f}" if (r.case, m) in compared else "-" for m in methods)]
         print(f"| {r.case} | " + " | ".join(cells) + " |")
     print()
-    print("| mismatch | cases | floor: separate | floor: joined | floor: prior | separate's flexion within 2 deg | "
-          "prior's flexion within 2 deg | " + " | ".join(METHOD_LABELS[m] for m in methods) + " |")
-    print("|---:|---:|---:|---:|---:|---:|---:|" + "---:|" * len(methods))
+    head = ["mismatch", "cases", "floor: separate", "floor: joined", "floor: prior", "separate's flexion within 2 deg",
+            "prior's flexion within 2 deg", *(METHOD_LABELS[m] for m in methods)]
+    print("| " + " | ".join(head) + " |")
+    print("|" + "---:|" * len(head))
     for mm in sorted({r.mismatch_mm for r in rows}):
         g = [r for r in rows if r.mismatch_mm == mm]
         cells = [f"{statistics.median(r.separate_mm for r in g):.2f}", f"{statistics.median(r.joined_mm for r in g):.2f}",

@@ -87,3 +87,21 @@ def test_bad_point_arrays_are_named():
         fit_sphere(np.zeros((3, 3)))
     with pytest.raises(KneeInputError, match="plane fit: points must be finite"):
         fit_plane(np.array([[0, 0, 0], [1, 0, 0], [0, np.nan, 0]]))
+
+
+def test_decimation_keeps_a_closed_volume_or_says_it_cannot():
+    """A sphere coarsened to 200 faces stays closed around nearly its volume; taken down to one face (nothing
+    closed) or two (two triangles back to back: closed, but empty) it is refused in one line naming what was
+    coarsened, rather than handed on as a skin with no inside."""
+    import trimesh
+
+    from knee.foundations.surfaces import decimated
+
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
+    coarse = decimated(sphere, 200, "skin")
+    assert coarse.is_volume and len(coarse.faces) <= 200
+    assert coarse.volume == pytest.approx(sphere.volume, rel=0.05)
+    assert decimated(sphere, 10 * len(sphere.faces)).faces.shape == sphere.faces.shape  # under the count: as given
+    for faces in (1, 2):
+        with pytest.raises(KneeInputError, match=r"^the skin could not be coarsened into a closed surface"):
+            decimated(sphere, faces, "skin")

@@ -131,7 +131,8 @@ def closed_surface(mesh: trimesh.Trimesh, what: str = "surface") -> trimesh.Trim
 def decimated(mesh: trimesh.Trimesh, faces: int, what: str = "surface") -> trimesh.Trimesh:
     """The closed mesh coarsened by quadric decimation (open3d) to about ``faces`` triangles, kept closed
     (small holes the decimation leaves are filled); returned as a copy when it has no more than that.
-    Raises :class:`KneeInputError` naming ``what`` when the result cannot be closed."""
+    Raises :class:`KneeInputError` naming ``what`` when the result cannot be closed or has lost half the
+    volume it enclosed (a sphere taken down to two faces is two triangles back to back: closed, and empty)."""
     if faces >= len(mesh.faces):
         return mesh.copy()
     m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(mesh.vertices, float)),
@@ -142,8 +143,9 @@ def decimated(mesh: trimesh.Trimesh, faces: int, what: str = "surface") -> trime
     out = trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.triangles), process=True)
     if not out.is_watertight:
         trimesh.repair.fill_holes(out)
-    if not out.is_watertight:
-        raise KneeInputError(f"the {what} could not be coarsened into a closed surface")
+    if not out.is_volume or out.volume < 0.5 * abs(mesh.volume):
+        raise KneeInputError(f"the {what} could not be coarsened into a closed surface around its volume "
+                             f"({len(out.faces)} faces left)")
     return out
 
 
