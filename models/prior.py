@@ -222,6 +222,7 @@ class SubjectSkinModel(SkinModel):
         thigh = clip_to_slab(skin, np.array([0.0, y0 + b - o, 0.0]), up, 0.0, hi - (y0 + b - o) + 1.0)
         shank = clip_to_slab(skin, np.array([0.0, y0 - b + o, 0.0]), up, (y0 - b + o) - lo + 1.0, 0.0)
         knee = clip_to_slab(skin, np.array([0.0, y0, 0.0]), up, b + o, b + o)
+        self.shank_at_scan = shank  # the shank's solid in the femur frame at the scan (:class:`ShankReplaced`)
         shank_in_tibia = shank.copy().apply_transform(invert_poses(self.T_scan))
         self._knee_rest = np.asarray(knee.vertices, float)
         self._knee_faces = np.asarray(knee.faces)
@@ -258,6 +259,28 @@ class SubjectSkinModel(SkinModel):
         nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
         return [self._local[0], self._local[1], (pts, nrm)]
+
+
+class ShankReplaced:
+    """A skin model's parts at one flexion ``alpha`` with the shank's surface replaced by ``shank`` (a
+    :class:`SurfaceQuery` in the tibia's frame, which the tibia then carries rigidly), the thigh and the knee
+    as ``skin`` poses them: what :func:`correct_tibia` asks of a skin model (``width`` and ``at(alpha)``),
+    so that the tibia's correction can be made against a shank posed otherwise (by the association model:
+    :func:`knee.models.fem.methods.fem_posed_shank`). The other parts only decide which points are the
+    shank's."""
+
+    def __init__(self, skin: SkinModel, alpha: float, shank: SurfaceQuery):
+        self.width = skin.width
+        self.alpha = float(alpha)
+        parts = list(skin.at(alpha).parts)
+        parts[SHANK] = (shank, parts[SHANK][1])
+        self._posed = PosedSkin(parts)
+
+    def at(self, alpha: float) -> PosedSkin:
+        if round(float(alpha), 6) != round(self.alpha, 6):
+            raise ValueError(f"this skin's shank was replaced at {math.degrees(self.alpha):.2f} deg, not "
+                             f"{math.degrees(alpha):.2f} deg")
+        return self._posed
 
 
 def _checked_cloud(points) -> np.ndarray:

@@ -9,9 +9,11 @@ same cases beside the floors.
     .venv/bin/python scripts/skin_mismatch_floor.py CASE_SET [--compare COMPARE.csv [--plot OUT.png]]
         [--csv OUT.csv] [--tissue]
 
-With ``--tissue``, also the floor without skin mismatch that the model's own tissue sets: on each 0 mm case the
+With ``--tissue``, also the floors without skin mismatch that the model's own tissue sets: on each 0 mm case the
 association model posed with the true bones and the femur placed on its skin from the true pose, as methods
-(ii)/(iii) place it (:func:`knee.app.experiments.skin_floor.tissue_floor`).
+(ii)/(iii) place it, and the tibia from the shank's points registered rigidly (no prior) onto the scanned shank
+carried by the true tibia and onto the shank as the model posed it
+(:func:`knee.app.experiments.skin_floor.tissue_floor`).
 
 About 0.2 s per case on the 2-core machine (the full set's 24: 6 s).
 """
@@ -41,14 +43,15 @@ def _compare_rows(path) -> dict:
     if not rows or not need <= set(rows[0]):
         raise KneeInputError(f"{path}: not a knee compare CSV of a case set (needs the columns "
                              f"{', '.join(sorted(need))})")
-    out, femur = {}, {}
+    out, femur, tibia = {}, {}, {}
     for r in rows:
         try:
             out[(r["case"], r["method"])] = 0.5 * (float(r["femur_footprints_mm"]) + float(r["tibia_footprints_mm"]))
             femur[(r["case"], r["method"])] = float(r["femur_footprints_mm"])
+            tibia[(r["case"], r["method"])] = float(r["tibia_footprints_mm"])
         except ValueError:
             continue  # a failed run has no errors
-    return out, femur
+    return out, femur, tibia
 
 
 def main() -> int:
@@ -78,7 +81,7 @@ def main() -> int:
     progress = timed_progress()
 
     try:
-        compared, femur = _compare_rows(args.compare) if args.compare else ({}, {})
+        compared, femur, tibia = _compare_rows(args.compare) if args.compare else ({}, {}, {})
         rows = skin_floor(args.cases, progress)
     except KneeError as e:
         print(f"error: {e}", file=sys.stderr)
@@ -126,14 +129,25 @@ def main() -> int:
 
         tissue = tissue_floor(args.cases, progress)
         print()
-        print("| case (0 mm) | femur footprints: tissue's floor | (iii) femur footprints |")
-        print("|---|---:|---:|")
-        for case, e in tissue:
-            mine = femur.get((case, "links"))
-            print(f"| {case} | {e:.2f} | " + (f"{mine:.2f}" if mine is not None else "-") + " |")
-        mine = [femur[(case, "links")] for case, _ in tissue if (case, "links") in femur]
-        print(f"| median of {len(tissue)} | {statistics.median(e for _, e in tissue):.2f} | "
-              + (f"{statistics.median(mine):.2f}" if mine else "-") + " |")
+        print("| case (0 mm) | femur footprints: tissue's floor | (iii) femur footprints | tibia footprints: the "
+              "scanned shank | the FEM-posed shank | (iii) tibia footprints |")
+        print("|---|---:|---:|---:|---:|---:|")
+
+        def _mine(table, case):
+            return f"{table[(case, 'links')]:.2f}" if (case, "links") in table else "-"
+
+        for t in tissue:
+            print(f"| {t.case} | {t.femur_mm:.2f} | {_mine(femur, t.case)} | {t.tibia_scanned_mm:.2f} | "
+                  f"{t.tibia_posed_mm:.2f} | {_mine(tibia, t.case)} |")
+
+        def _median_of(values):
+            values = list(values)
+            return f"{statistics.median(values):.2f}" if values else "-"
+
+        print(f"| median of {len(tissue)} | {_median_of(t.femur_mm for t in tissue)} | "
+              f"{_median_of(femur[(t.case, 'links')] for t in tissue if (t.case, 'links') in femur)} | "
+              f"{_median_of(t.tibia_scanned_mm for t in tissue)} | {_median_of(t.tibia_posed_mm for t in tissue)} | "
+              f"{_median_of(tibia[(t.case, 'links')] for t in tissue if (t.case, 'links') in tibia)} |")
     return 0
 
 

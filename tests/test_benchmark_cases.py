@@ -838,7 +838,7 @@ def test_tissue_floor_is_zero_on_the_models_own_posed_skin(small_case_set):
     the true one (posed off it, on the prior's path, it would be millimetres away); on the case's own image (the truth's other tissue) it is not
     zero, and the case set's floor measures that."""
     from knee.app.experiments.case_set import iter_cases
-    from knee.app.experiments.skin_floor import _cloud, tissue_floor, tissue_floor_pose
+    from knee.app.experiments.skin_floor import _cloud, tibia_tissue_floor_poses, tissue_floor, tissue_floor_pose
     from knee.foundations.conventions import invert_poses
     from knee.foundations.pointclouds import backproject
     from knee.models.fem.depth import Camera, render_depth
@@ -862,11 +862,17 @@ def test_tissue_floor_is_zero_on_the_models_own_posed_skin(small_case_set):
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     cam = Camera(K, int(round(2 * cx)), int(round(2 * cy)), invert_poses(Tf))  # the camera in the model frame
     own = backproject(render_depth(skin, model.skin_faces, cam), K)
-    T_est = tissue_floor_pose(anatomy, prior, own, Tf, Tt)
+    T_est = tissue_floor_pose(anatomy, prior, own, Tf, Tt, model=model)
     knee_centre = np.array([0.0, anatomy.joint_y, 0.0, 1.0])
     assert np.linalg.norm((T_est @ knee_centre - Tf @ knee_centre)[:3]) < 0.2
-    (case, err), = tissue_floor(small_case_set)
-    assert case == c["id"] and 0.02 < err < 6.0
+    # the tibia's floors on that image: on the shank as the model posed it, the tibia where it is; on the
+    # scanned shank carried rigidly by the bone (which the posed tissue near the knee departs from), further off
+    tibia = tibia_tissue_floor_poses(model, own, Tf, Tt)
+    off = {k: np.linalg.norm((T @ tip - Tt @ tip)[:3]) for k, T in tibia.items()}
+    assert off["posed"] < 0.3 and off["scanned"] > off["posed"] + 0.2
+    row, = tissue_floor(small_case_set)
+    assert row.case == c["id"] and 0.02 < row.femur_mm < 6.0
+    assert 0.02 < row.tibia_scanned_mm < 8.0 and 0.02 < row.tibia_posed_mm < 8.0
 
 
 def test_compare_tables_read_back_and_pool_across_case_sets(tmp_path, capsys, run_script):

@@ -581,6 +581,65 @@ def test_the_fem_posed_skin_is_the_fems_skin(volunteer):
     np.testing.assert_array_less(np.percentile(np.linalg.norm(sk._knee_vertices(a) - fem, axis=1), [50, 75]), [1.0, 3.0])
 
 
+def test_the_shank_as_the_fem_posed_it_is_carried_by_the_tibia_and_corrects_it(volunteer):
+    """``fem_posed_shank``: at the scan (nothing moved) its shank is the scanned one in the tibia's frame. With
+    the tibia moved to 60 deg (and a known correction) by the prior's initialisation, its shank in the tibia's
+    frame is the scanned one far below the knee (the tibia's cells carry the tissue there rigidly) and
+    departs from it near the knee (the tissue follows the thigh); a frame left uninverted would put it tens of
+    mm off everywhere. Points on that posed shank, given to the tibia's correction from the prior's path with
+    the points weighed as exact, bring the tibia back to the pose the model was moved to; the scanned shank
+    moved rigidly, given the same points, does not. A skin asked at another flexion than it was replaced at is
+    refused."""
+    import trimesh
+    from trimesh.sample import sample_surface
+
+    from knee.models.fem.mapping import TrilinearMapping
+    from knee.models.fem.methods import (fem_posed_shank, initialise_from_prior, prior_method, quasi_static, skin_model,
+                                         tibia_path)
+    from knee.models.fem.scene import build_knee_model, phantom_anatomy
+    from knee.models.prior import SHANK, correct_tibia, small_pose
+
+    anatomy, _ = phantom_anatomy(volunteer)
+    model = build_knee_model(anatomy, prior=volunteer)
+    sk = skin_model(model, volunteer)
+    rest = sk.shank_at_scan
+    a_scan = anatomy.scan_tf[0]
+    scan = fem_posed_shank(model, sk, a_scan, anatomy.tibia_pose)
+    q_scan = scan.at(a_scan).parts[SHANK][0]
+    p, _ = sample_surface(rest, 3000, seed=1)
+    # (the ray-casting scene's single precision: 0.01 mm on the scanned shank's own samples)
+    assert np.abs(q_scan.signed_distance(transform_points(invert_poses(anatomy.tibia_pose), p))).max() < 0.05
+    a = math.radians(60.0)
+    xi = np.array([0.02, -0.03, 0.015, 1.0, -0.8, 1.2])
+    T = tibia_path(volunteer, model, a)[0] @ small_pose(xi)
+    with quasi_static(model.solver):
+        initialise_from_prior(model, volunteer, a, correction_xi=xi)
+    posed = fem_posed_shank(model, sk, a, T)
+    q = posed.at(a).parts[SHANK][0]
+    local = transform_points(invert_poses(anatomy.tibia_pose), p)  # the scanned shank in the tibia's frame
+    far = p[:, 1] < anatomy.joint_y - 1.5 * anatomy.width
+    d = np.abs(q.signed_distance(local))
+    assert far.sum() > 100 and np.percentile(d[far], 90) < 0.3
+    assert d[~far].max() > 1.0
+    # the points: on the posed shank's skin as the model has it (its vertices carried by the grid), not the
+    # solid's cut across the leg; the part near the knee included: a shank far below it is a near-cylinder,
+    # which leaves the slide along and the turn about its axis to the prior
+    mesh = trimesh.Trimesh(TrilinearMapping(model.grid, np.asarray(rest.vertices)).apply(model.solver.x), rest.faces,
+                           process=False)
+    on, face = sample_surface(mesh, 6000, seed=2)
+    cut = anatomy.joint_y - (sk.BLEND - sk.OVERLAP) * anatomy.width
+    pts = on[rest.vertices[rest.faces[face]][:, :, 1].max(axis=1) < cut - 1.0]
+    found = correct_tibia(posed, pts, a, point_sd_mm=0.05)
+    rigid = correct_tibia(sk, pts, a, point_sd_mm=0.05)
+    knee_centre = np.array([[0.0, anatomy.joint_y, 0.0]])
+    off = [float(np.linalg.norm(transform_points(c.T, knee_centre) - transform_points(T, knee_centre))) for c in (found, rigid)]
+    assert off[0] < 0.1 and off[1] > 3 * off[0]
+    with pytest.raises(ValueError, match="replaced at 60.00 deg"):
+        posed.at(math.radians(30.0))
+    with pytest.raises(KneeInputError, match="one of fem, blend"):  # refused, not a fallback to the paper's method
+        prior_method("links", model, volunteer, np.zeros((600, 3)), shank_skin="rigid")
+
+
 def test_the_tibia_correction_weighs_points_that_err_together_as_few(volunteer):
     """The front of a shank that has not moved, its skin displaced by a smooth field of 2 mm RMS (bumps a
     quarter of the knee's width across, as a skin model errs): treated as independent points (sd 2 mm) the

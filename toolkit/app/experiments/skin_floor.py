@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -44,6 +45,7 @@ from knee.foundations.conventions import invert_poses, matrix_to_cardan, pose_to
 from knee.foundations.errors import KneeInputError
 from knee.foundations.pointclouds import icp, point_normals, voxel_downsample
 from knee.models.evaluation import pose_errors
+from knee.models.fem.mapping import TrilinearMapping
 from knee.models.fem.methods import initialise_from_prior, quasi_static, register_to_posed_skin, tibia_path
 from knee.models.fem.scene import build_knee_model
 from knee.models.prior import (TIBIA_PRIOR_DEG, TIBIA_PRIOR_MM, VOXEL_MM, effective_point_sd, right_jacobian,
@@ -223,25 +225,83 @@ def tissue_floor_pose(anatomy, prior, points_cam, T_cam_femur, T_cam_tibia, mode
     return T_cam_femur @ invert_poses(T_fix)
 
 
+#: Femoral widths below the joint line from which a depth point counts as the shank's in the tibia's tissue floor
+#: (:func:`tibia_tissue_floor_poses`): below the flexion estimate's blended knee band.
+TIBIA_FLOOR_BELOW_WIDTHS = 0.25
+#: Samples spread over the model's skin for the tibia's tissue floor.
+TIBIA_FLOOR_SAMPLES = 40000
+
+
+def tibia_tissue_floor_poses(model, points_cam, T_cam_femur, T_cam_tibia) -> dict:
+    """The tibia's poses (4, 4; rest model coordinates to the camera) that the shank's depth points give,
+    registered rigidly (point-to-plane ICP, no prior, the femur exact) onto the model's shank at the true
+    tibia: as scanned and carried by the bone (``"scanned"``, the flexion estimate's shank) and as the
+    association model poses it (``"posed"``, the shank :func:`knee.models.fem.methods.fem_posed_shank` gives
+    the tibia's second correction). ``model``: posed with the true bones (by :func:`tissue_floor_pose`). The
+    shank: the skin more than :data:`TIBIA_FLOOR_BELOW_WIDTHS` femoral widths below the joint line at the
+    scan, and the points below it once taken back to the scan by the true tibia's motion."""
+    anatomy = model.anatomy
+    T_cam_femur, T_cam_tibia = np.asarray(T_cam_femur, float), np.asarray(T_cam_tibia, float)
+    T_tib = invert_poses(T_cam_femur) @ T_cam_tibia  # the tibia's rest coordinates to the femur frame, true
+    cut = anatomy.joint_y - TIBIA_FLOOR_BELOW_WIDTHS * anatomy.width
+    pts = transform_points(invert_poses(T_cam_femur), np.asarray(points_cam, float))
+    pts = pts[transform_points(invert_poses(T_tib), pts)[:, 1] < cut]
+    rest = trimesh.Trimesh(model.skin_vertices, model.skin_faces, process=False)
+    posed = trimesh.Trimesh(TrilinearMapping(model.grid, model.skin_vertices).apply(model.solver.x), model.skin_faces,
+                            process=False)
+    on, face = trimesh.sample.sample_surface(rest, TIBIA_FLOOR_SAMPLES, seed=0)
+    shank = on[:, 1] < cut  # the rest model coordinates: the femur frame at the scan
+    out = {}
+    for name, target, normals in (
+            ("scanned", transform_points(T_tib, on[shank]), rest.face_normals[face[shank]] @ T_tib[:3, :3].T),
+            ("posed", trimesh.triangles.barycentric_to_points(
+                posed.triangles[face[shank]], trimesh.triangles.points_to_barycentric(rest.triangles[face[shank]],
+                                                                                      on[shank])),
+             posed.face_normals[face[shank]])):
+        E, _, _ = icp(pts, target, max_distance=FLOOR_REACH_MM, iterations=FLOOR_ITERATIONS, target_normals=normals)
+        out[name] = T_cam_femur @ invert_poses(E) @ T_tib
+    return out
+
+
+@dataclass
+class TissueFloorRow:
+    """One case's floors without skin mismatch (mean footprint errors, mm): the femur placed on the FEM-posed
+    skin (:func:`tissue_floor_pose`), the tibia from the shank's points on the scanned and on the FEM-posed
+    shank (:func:`tibia_tissue_floor_poses`)."""
+
+    case: str
+    femur_mm: float
+    tibia_scanned_mm: float
+    tibia_posed_mm: float
+
+
 def tissue_floor(folder, progress: Callable[[int, int, str], None] | None = None,
-                 select: Callable[[dict], bool] | None = None) -> list[tuple[str, float]]:
-    """(case id, the femur's mean footprint error in mm) of :func:`tissue_floor_pose` on every case without
-    skin mismatch (``select``: a filter), where the truth's skin differs from the model's only by its
-    other model of the tissue. An error naming the case set when it has no such case."""
+                 select: Callable[[dict], bool] | None = None) -> list[TissueFloorRow]:
+    """The tissue's floors (:class:`TissueFloorRow`) on every case without skin mismatch (``select``: a
+    filter), where the truth's skin differs from the model's only by its other model of the tissue. An
+    error naming the case set when it has no such case."""
     folder = Path(folder)
     wanted = {c["id"] for c in read_case_set(folder)["case"] if float(c["mismatch_mm"]) == 0.0
               and (select is None or select(c))}
     if not wanted:
         raise KneeInputError(f"{folder}: no case without skin mismatch; nothing to measure the tissue's floor on")
     out = []
+    models = {}
     for c, (anatomy, prior, T_ct_model), i, n in iter_cases(folder, lambda c: c["id"] in wanted):
         if progress:
             progress(i, n, c["id"])
         T_cam_femur = np.asarray(c["T_camera_femur_ct"]) @ T_ct_model
         T_cam_tibia = np.asarray(c["T_camera_tibia_ct"]) @ T_ct_model
-        Tf = tissue_floor_pose(anatomy, prior, _cloud(folder, c), T_cam_femur, T_cam_tibia)
-        e = pose_errors(anatomy_targets(anatomy, prior), T_cam_femur, T_cam_tibia, Tf, T_cam_tibia)
-        out.append((c["id"], e.femur.footprints.mean))
+        model = models.get(c["anatomy"])
+        if model is None:
+            model = models[c["anatomy"]] = build_knee_model(anatomy, prior=prior)
+        points = _cloud(folder, c)
+        Tf = tissue_floor_pose(anatomy, prior, points, T_cam_femur, T_cam_tibia, model=model)
+        tibia = tibia_tissue_floor_poses(model, points, T_cam_femur, T_cam_tibia)
+        tg = anatomy_targets(anatomy, prior)
+        e = pose_errors(tg, T_cam_femur, T_cam_tibia, Tf, T_cam_tibia)
+        et = {k: pose_errors(tg, T_cam_femur, T_cam_tibia, T_cam_femur, T).tibia.footprints.mean for k, T in tibia.items()}
+        out.append(TissueFloorRow(c["id"], e.femur.footprints.mean, et["scanned"], et["posed"]))
     if progress:
         progress(len(out), len(out), "done")
     return out
