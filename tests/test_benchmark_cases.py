@@ -3,6 +3,7 @@ invariances), the skin mismatch field, and the case set (its truth, its rough po
 
 import dataclasses
 import math
+import os
 
 import numpy as np
 import pytest
@@ -244,6 +245,8 @@ def test_case_set_runs_and_measures_against_its_truth(small_case_set):
     # or the estimate's chain (CT, femur frame, camera) would put it tens of mm off
     assert abs(r.flexion_estimated_deg - r.flexion_true_deg) < 5.0
     assert r.footprints_mm < 12.0 and r.registration_inliers > 0.4
+    # the run's CPU time is its own: more than nothing, and no more than its wall time on every core there is
+    assert 0.0 < r.cpu_seconds <= r.wall_seconds * (os.cpu_count() or 1) + 0.05
 
 
 def test_stage_errors_compose_each_stages_bones_in_the_cameras_frame(small_case_set):
@@ -461,7 +464,8 @@ def test_compare_on_a_case_set_writes_its_report(small_case_set, tmp_path, capsy
     md = (out / "compare.md").read_text()
     assert "## Targets" in md and "(iv) kinematics" in md and (out / "compare.png").stat().st_size > 0
     rows = (out / "compare.csv").read_text().splitlines()
-    assert len(rows) == 5 and "mismatch_mm" in rows[0]
+    assert len(rows) == 5 and "mismatch_mm" in rows[0] and rows[0].endswith("cpu_seconds")
+    assert "s, every thread's) (target <= 5 s)" in md  # the time target with the CPU time beside the wall time
     # the 1 mm view has its 0 mm twin: the 0-1 mm target says what a perfect model reaches there
     assert "at 1 mm, on the 1 views also rendered at 0 mm" in md and "(iii)" in md.split("views also")[1]
     # the recording: a valid file with the cloud, the truth's and each method's bones and the errors
@@ -883,12 +887,13 @@ def test_compare_tables_read_back_and_pool_across_case_sets(tmp_path, capsys, ru
 
     from knee.app.experiments.case_set import CaseRow
     from knee.app.reports.compare import read_csv, write_csv
+    from knee.foundations.errors import KneeInputError
 
-    extra = ("case", "anatomy", "family", "mismatch_mm", "registration_inliers", "shank_points_true")
+    extra = ("case", "anatomy", "family", "mismatch_mm", "registration_inliers", "shank_points_true", "cpu_seconds")
 
     def row(method, case, fp, mm=1.0, flex=30.0):
         return CaseRow(method, "paper", 30.0, flex, fp, fp, fp + 0.5, fp + 0.25, 12, 3.5, True, 1.5, 0.75, "",
-                       "", case, "phantom", "measured", mm, 0.75, 500)
+                       "", case, "phantom", "measured", mm, 0.75, 500, 2.0 * fp)
 
     a = [row("links", "c1", 1.5), row("kinematics", "c1", 4.0), row("links", "c2", 2.5),
          row("kinematics", "c2", 2.0), CaseRow("paper", "paper", 30.0, failed="diverged", case="c1",
@@ -899,6 +904,13 @@ def test_compare_tables_read_back_and_pool_across_case_sets(tmp_path, capsys, ru
     back = read_csv(tmp_path / "a.csv", CaseRow)
     assert back[:4] == a[:4]
     assert back[4].failed == "diverged" and back[4].steps == 0 and back[4].femur_footprints_mm != back[4].femur_footprints_mm
+    # a table written before the CPU time was recorded reads with it unknown; one without another column is refused
+    write_csv(a, tmp_path / "old.csv", extra=extra[:-1])
+    old = read_csv(tmp_path / "old.csv", CaseRow)
+    assert old[0].cpu_seconds != old[0].cpu_seconds and old[0].femur_footprints_mm == 1.5
+    write_csv(a, tmp_path / "bad.csv", extra=extra[1:])
+    with pytest.raises(KneeInputError, match="missing case"):
+        read_csv(tmp_path / "bad.csv", CaseRow)
     assert run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "b.csv"]) == 0
     pooled = capsys.readouterr().out.split("## pooled")[1]
     assert f"at 0 and 1 mm skin mismatch: {statistics.median([1.5, 2.5, 3.5]):.2f} mm over 3 cases" in pooled
@@ -906,6 +918,7 @@ def test_compare_tables_read_back_and_pool_across_case_sets(tmp_path, capsys, ru
     # case ids mixed, the first c1 would meet the second's (iv) and lose: 0 of 3)
     assert "lower than (iv) in 33 % of 3 cases" in pooled
     assert "2 of 3 within 2 deg" in pooled  # the second set's 3 deg miss
+    assert f"(CPU time {statistics.median([3.0, 5.0, 7.0]):.1f} s, every thread's)" in pooled  # (iii)'s, 2 x its fp
     png = tmp_path / "pooled.png"
     assert run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "b.csv", "--plot", png]) == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"figure: {png}" in capsys.readouterr().out

@@ -502,6 +502,9 @@ class CaseRow(CompareRow):
     mismatch_mm: float = float("nan")
     registration_inliers: float = float("nan")
     shank_points_true: int = -1
+    #: the process's CPU time over the run (s; every thread's): on a shared machine, where other work takes
+    #: the cores, the wall time grows and this does not
+    cpu_seconds: float = float("nan")
 
 
 #: The shank, for counting what the camera sees of it: the skin more than this many femur widths below the
@@ -542,10 +545,10 @@ def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T
     model = build_knee_model(anatomy, prior=prior)
     if method == "paper":  # the paper's method at its best reading (the README lists the choices)
         options = {**PAPER_AT_BEST, **options}
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     recon, rough = reconstruct_in_camera(model, prior, pts, invert_poses(init @ T_ct_model) if guess else None, method,
                                          **options)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     T_cam_world = invert_poses(rough.T_model_world)
     T_cam_femur = np.asarray(case["T_camera_femur_ct"]) @ T_ct_model
     T_cam_tibia = np.asarray(case["T_camera_tibia_ct"]) @ T_ct_model
@@ -553,7 +556,7 @@ def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T
     row = reconstruction_row(method, case["camera"], float(case["flexion_deg"]), recon, e, wall, CaseRow,
                              case=case["id"], anatomy=case["anatomy"], family=case["family"],
                              mismatch_mm=float(case["mismatch_mm"]), registration_inliers=rough.inliers,
-                             shank_points_true=seen_shank_points(anatomy, pts, T_cam_tibia))
+                             shank_points_true=seen_shank_points(anatomy, pts, T_cam_tibia), cpu_seconds=cpu)
     staged = camera_stage_errors(anatomy, prior, recon, T_cam_world, T_cam_femur, T_cam_tibia) if stages else []
     if on_result is not None:
         estimate = {b: T_cam_world @ recon.rigid_pose(b) for b in ("femur", "tibia")}

@@ -95,24 +95,29 @@ def write_csv(rows: list[CompareRow], path, extra=()) -> None:
             w.writerow({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in d.items()})
 
 
+#: Columns a table written before they were added may lack: their rows take the field's default.
+LATER_COLUMNS = ("cpu_seconds",)
+
+
 def read_csv(path, row_type=CompareRow) -> list:
     """The rows :func:`write_csv` wrote (``row_type``: :class:`CompareRow` or a subclass naming the extra
     columns), each field converted back to its type (a failed run's empty figures to their defaults);
-    :class:`KneeInputError` naming the file when it lacks a column of ``row_type``."""
+    :class:`KneeInputError` naming the file when it lacks a column of ``row_type`` (but those of
+    :data:`LATER_COLUMNS`)."""
     fields = {f.name: f for f in dataclasses.fields(row_type)}
     try:
         with open(path, newline="", encoding="utf-8") as fh:
             table = list(csv.DictReader(fh))
     except (OSError, UnicodeDecodeError, csv.Error) as e:
         raise KneeInputError(f"{path}: not a readable comparison table ({e})") from None
-    missing = sorted(set(fields) - set(table[0] if table else ()))
+    missing = sorted(set(fields) - set(table[0] if table else ()) - set(LATER_COLUMNS))
     if missing:
         raise KneeInputError(f"{path}: not a comparison table of these rows (missing {', '.join(missing)})")
     convert = {"float": float, "int": lambda v: int(float(v)), "bool": lambda v: v == "True", "str": str}
     out = []
     for rec in table:
         kw = {k: convert[f.type if isinstance(f.type, str) else f.type.__name__](rec[k])
-              for k, f in fields.items() if rec[k] != ""}
+              for k, f in fields.items() if rec.get(k, "") != ""}
         out.append(row_type(**kw))
     return out
 
