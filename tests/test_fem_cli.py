@@ -277,3 +277,21 @@ def test_bone_phase_reaches_the_papers_angle_or_stops_before_crushing_the_tissue
     assert inv <= MAX_INVERTED_FRACTION * model.soft.el.alive.size
     assert 60.0 < r.bone_phase_flexion_deg < 80.0
 
+
+
+def test_posed_skin_follows_the_grid(fem_model):
+    """The skin as the grid carries it: at rest the scanned skin itself, and under a rigid motion of every node
+    the scanned skin moved the same way (trilinear interpolation reproduces affine fields exactly); reading the
+    rest nodes (grid.X) instead of the present ones, or another surface's vertices, would fail one of them."""
+    from scipy.spatial.transform import Rotation
+
+    model = fem_model
+    model.reset()
+    np.testing.assert_allclose(model.posed_skin_vertices(), model.skin_vertices, atol=1e-9)
+    R, t = Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix(), np.array([4.0, -7.0, 2.5])
+    x0 = model.solver.x.copy()
+    try:
+        model.solver.x[:] = x0 @ R.T + t
+        np.testing.assert_allclose(model.posed_skin_vertices(), model.skin_vertices @ R.T + t, atol=1e-8)
+    finally:
+        model.reset()

@@ -457,8 +457,7 @@ def register_to_posed_skin(model: AssociationModel, points, reaches=POSED_SKIN_R
     mm of it backwards; held, 0.7-2.2 mm); dropping the tilt afterwards about the knee's centre kept that
     move. Held in the fit, (iii)'s median footprint error at 0-1 mm skin mismatch goes 2.29 -> 2.19 mm (the
     Visible Human's 2.60 -> 2.24, the phantom's 1.98 -> 2.16; 28 of 60 cases better; BENCHMARKS.md)."""
-    v = TrilinearMapping(model.grid, model.skin_vertices).apply(model.solver.x)
-    mesh = trimesh.Trimesh(v, model.skin_faces, process=False)
+    mesh = trimesh.Trimesh(model.posed_skin_vertices(), model.skin_faces, process=False)
     samples, face = sample_surface(mesh, n_samples, seed=0)
     q = voxel_downsample(np.asarray(points, float), VOXEL_MM)
     if below_widths is not None:

@@ -35,6 +35,7 @@ from knee.models.fem.fields import (
 )
 from knee.models.fem.grid import build_grid
 from knee.models.fem.integrator import ImplicitEuler
+from knee.models.fem.mapping import TrilinearMapping
 from knee.models.mechanism.solver import Mechanism
 from knee.models.phantom import Phantom, build_phantom
 
@@ -148,6 +149,10 @@ class AssociationModel:
     def x(self):
         """The grid's node positions (N, 3), mm, model (femur) frame."""
         return self.solver.x
+
+    def posed_skin_vertices(self) -> np.ndarray:
+        """The skin's vertices (V, 3), mm, model frame, where the grid's present displacements carry them."""
+        return TrilinearMapping(self.grid, self.skin_vertices).apply(self.solver.x)
 
     def thigh_samples(self) -> tuple[np.ndarray, np.ndarray]:
         """Points spread densely over the model's thigh skin (the skin's vertices are ~15 mm apart) and

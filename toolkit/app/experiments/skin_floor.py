@@ -45,7 +45,6 @@ from knee.foundations.conventions import invert_poses, matrix_to_cardan, pose_to
 from knee.foundations.errors import KneeInputError
 from knee.foundations.pointclouds import icp, point_normals, voxel_downsample
 from knee.models.evaluation import pose_errors
-from knee.models.fem.mapping import TrilinearMapping
 from knee.models.fem.methods import initialise_from_prior, quasi_static, register_to_posed_skin, tibia_path
 from knee.models.fem.scene import build_knee_model
 from knee.models.prior import (TIBIA_PRIOR_DEG, TIBIA_PRIOR_MM, VOXEL_MM, effective_point_sd, right_jacobian,
@@ -247,8 +246,7 @@ def tibia_tissue_floor_poses(model, points_cam, T_cam_femur, T_cam_tibia) -> dic
     pts = transform_points(invert_poses(T_cam_femur), np.asarray(points_cam, float))
     pts = pts[transform_points(invert_poses(T_tib), pts)[:, 1] < cut]
     rest = trimesh.Trimesh(model.skin_vertices, model.skin_faces, process=False)
-    posed = trimesh.Trimesh(TrilinearMapping(model.grid, model.skin_vertices).apply(model.solver.x), model.skin_faces,
-                            process=False)
+    posed = trimesh.Trimesh(model.posed_skin_vertices(), model.skin_faces, process=False)
     on, face = trimesh.sample.sample_surface(rest, TIBIA_FLOOR_SAMPLES, seed=0)
     shank = on[:, 1] < cut  # the rest model coordinates: the femur frame at the scan
     out = {}

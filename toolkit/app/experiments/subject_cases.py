@@ -28,7 +28,6 @@ from knee.foundations.pointclouds import backproject
 from knee.models.evaluation import pose_errors, target_errors, target_points
 from knee.models.fem.anatomy import KneeAnatomy
 from knee.models.fem.depth import Camera, DepthNoise, default_camera, render_depth
-from knee.models.fem.mapping import TrilinearMapping
 from knee.models.fem.methods import METHODS, STAGES, move_tibia, quasi_static, reconstruct_in_camera
 from knee.models.fem.scene import build_knee_model
 from knee.models.mechanism.solver import Mechanism
@@ -63,7 +62,7 @@ def posed_skin(anatomy: KneeAnatomy, prior: Mechanism, T_tibia, increments: int 
     poses[:, :3, 3] = (1 - f)[:, None] * T0[:3, 3] + f[:, None] * np.asarray(T_tibia)[:3, 3]
     with quasi_static(model.solver):
         move_tibia(model, poses, rebase=False)
-    return TrilinearMapping(model.grid, model.skin_vertices).apply(model.solver.x), model.skin_faces
+    return model.posed_skin_vertices(), model.skin_faces
 
 
 def subject_cases(anatomy: KneeAnatomy, prior: Mechanism, motion_tf, azimuths=(35.0,), noise=DepthNoise(),

@@ -142,7 +142,7 @@ def targets(rows, floors=()) -> list[str]:
                      f"{paper:.2f} mm: {'lower' if m < paper else 'NOT lower'}")
         lines += flexion_targets(ok)
         w = _median(r.wall_seconds for r in ok)
-        cpu = [c for c in (getattr(r, "cpu_seconds", math.nan) for r in ok) if math.isfinite(c)]
+        cpu = [r.cpu_seconds for r in ok if math.isfinite(r.cpu_seconds)]
         lines.append(f"(iii) median time {w:.1f} s per case including the registration"
                      + (f" (CPU time {_median(cpu):.1f} s, every thread's)" if cpu else "")
                      + f" (target <= 5 s): {'met' if w <= 5 else 'NOT met'}")
