@@ -763,6 +763,15 @@ def test_prior_floor_recovers_a_moved_leg_and_weighs_the_prior_against_the_point
     assert worthless == pytest.approx(3.0, abs=0.15)
     assert exact + 0.3 < between < worthless - 0.3
 
+    # a cloud with too few points on one side of the knee cannot place that bone: refused in one line, not
+    # fitted on nothing (the femur's side of the cloud kept, five points of the tibia's)
+    from knee.foundations.errors import KneeInputError
+
+    below = transform_points(invert_poses(Tt), clean)[:, 1] < anatomy.joint_y
+    few = np.vstack([clean[~below], clean[below][:5]])
+    with pytest.raises(KneeInputError, match="^the prior floor needs points on both sides of the knee"):
+        prior_floor_poses(few, clean, Tf, Tt, anatomy.joint_y, anatomy.tibia_pose, through_truth, 10.0)
+
 
 def test_skin_floor_on_the_case_set_and_its_script(small_case_set, tmp_path, capsys, run_script):
     """The floor is measured on the cases whose view was rendered at 0 mm too (here the paper's at 1 mm),
