@@ -160,6 +160,25 @@ def test_shared_stiffness_products_match_each_elements_own():
     assert shared_stiffness_groups(CorotationalElements(Xt, tets, 3.0, 0.3).K) is None
 
 
+
+def test_shared_stiffness_groups_refuse_matrices_whose_hashes_collide(monkeypatch):
+    """The groups are found by one hash per matrix: where different matrices share a hash (every weight
+    zero, so every hash is 0), the check against each matrix refuses the groups (None: the batched
+    product), rather than multiplying a cell by another cell's matrix."""
+    import knee.models.fem.elements as E
+
+    X, hexes = box_hexahedra((6, 4, 3), (60.0, 40.0, 30.0))
+    X = X.copy()
+    X[:, 0] = X[:, 0] ** 1.3  # six cell shapes
+    K = CorotationalElements(X, hexes, 3.0, 0.3).K
+    assert len(E.shared_stiffness_groups(K)[2]) == 6
+    monkeypatch.setattr(E, "_group_hash_weights", lambda n: np.zeros(n, np.int64))
+    assert E.shared_stiffness_groups(K) is None
+    # equal matrices still group: one cell shape, every hash equal and the check passed
+    Xu, hu = box_hexahedra((6, 4, 3), (60.0, 40.0, 30.0))
+    groups = E.shared_stiffness_groups(CorotationalElements(Xu, hu, 3.0, 0.3).K)
+    assert groups is not None and len(groups[2]) == 1
+
 def _cantilever(kind, n, L=100.0, h=10.0, E=1000.0, nu=0.3, P=1.0):
     X, cells = _mesh(kind, n=n, size=(L, h, h))
     el = CorotationalElements(X, cells, E, nu)

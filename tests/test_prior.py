@@ -507,6 +507,7 @@ def test_rough_registration_searches_a_large_cloud_with_a_subsample(volunteer, s
     original = P.icp
     monkeypatch.setattr(P, "icp", lambda src, *a, **k: searched.append(len(src)) or original(src, *a, **k))
     monkeypatch.setattr(P, "ROUGH_MAX_POINTS", len(every) // 3)
+    monkeypatch.setattr(P, "ROUGH_ICP_POINTS", len(every))  # the ICPs' own subsample apart (next test)
     r = P.register_roughly(sk, pts, guess)
     assert set(searched) == {len(every) // 3}
     d, _ = sk.samples(r.flexion)[2].query(transform_points(r.T_model_world, every))
@@ -517,6 +518,38 @@ def test_rough_registration_searches_a_large_cloud_with_a_subsample(volunteer, s
     shift = float(np.linalg.norm(transform_points(T, pts) - pts, axis=1).mean())
     assert rot < 10.0 and shift < 15.0, (rot, shift)
 
+
+
+def test_the_guess_is_refined_with_a_subsample_and_scored_on_every_point(volunteer, scene, monkeypatch):
+    """From a guess, every ICP of the rough registration takes at most :data:`ROUGH_ICP_POINTS` of the
+    thinned points (here lowered to a third of them): the match lands where every point's does (the same
+    candidate flexion, within 1 deg and 1 mm), and the share of points on the skin it reports is that of all
+    the thinned points at the match (counted here independently), not the subsample's."""
+    from scipy.spatial.transform import Rotation
+
+    import knee.models.prior as P
+    from knee.foundations.pointclouds import voxel_downsample
+
+    ph, _, pts = scene
+    sk = SkinModel(volunteer, ph)
+    guess = np.eye(4)
+    guess[:3, :3] = Rotation.from_rotvec(math.radians(20.0) * np.array([0.6, 0.0, 0.8])).as_matrix()
+    guess[:3, 3] = [20.0, -25.0, 0.0]
+    every = voxel_downsample(pts, P.VOXEL_MM)
+    monkeypatch.setattr(P, "ROUGH_ICP_POINTS", len(every))
+    whole = P.register_roughly(sk, pts, guess)
+    few = len(every) // 3
+    monkeypatch.setattr(P, "ROUGH_ICP_POINTS", few)
+    searched = []
+    original = P.icp
+    monkeypatch.setattr(P, "icp", lambda src, *a, **k: searched.append(len(src)) or original(src, *a, **k))
+    r = P.register_roughly(sk, pts, guess)
+    assert set(searched) == {few}
+    d, _ = sk.samples(r.flexion)[2].query(transform_points(r.T_model_world, every))
+    assert r.inliers == pytest.approx(float(np.mean(d < 5.0)))
+    assert r.flexion == whole.flexion
+    turned, moved = P.placements_apart(sk, r.T_model_world, whole.T_model_world)
+    assert turned < 1.0 and moved < 1.0, (turned, moved)
 
 def test_the_global_search_refines_its_starts_with_a_subsample(volunteer, monkeypatch):
     """The global search's starts are refined with at most :data:`GLOBAL_ICP_POINTS` of the thinned points
