@@ -451,8 +451,8 @@ GLOBAL_ICP_POINTS = 2000
 #: the global search's starts: :data:`GLOBAL_ICP_POINTS`); its matches are scored on all of the cloud's
 #: points. The guess's 20 ICPs (four flexions, two schedules) had taken every point of a view (3,000-7,000
 #: after the 4 mm voxels), a fifth of method (iii)'s time; the flexion estimate then registers all of them
-#: again from the match. Measured on the honest benchmark's seeds 0 and 1 (BENCHMARKS.md): the same footprint
-#: errors per case (median change -0.001 and -0.004 mm), 0.89 of the case's time.
+#: again from the match. Measured on the honest benchmark's seeds 0-2 (BENCHMARKS.md): the same footprint
+#: errors per case (median change -0.001 to -0.004 mm), 0.89 of the case's time.
 ROUGH_ICP_POINTS = GLOBAL_ICP_POINTS
 
 
