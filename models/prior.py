@@ -573,9 +573,8 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
     50 mm; refined with at most :data:`ROUGH_ICP_POINTS` of the points), or, without one, from a global
     search: rotations spread over all of them as a camera at ``viewpoint`` (the origin of a depth image's
     points) would see the skin (:func:`view_starts`, the best :data:`GLOBAL_REFINED` refined with at most
-    :data:`GLOBAL_ICP_POINTS` of the points; a cloud in separate
-    pieces, as two legs or a leg and a box are, searched also from each large piece, its starts refined with
-    its own points: :data:`PIECE_GAP_MM`).
+    :data:`GLOBAL_ICP_POINTS` of the points; a cloud in separate pieces, as two legs or a leg and a box are,
+    searched also from each large piece, its starts refined with its own points: :data:`PIECE_GAP_MM`).
 
     Against the prior's skin posed at a few flexions (within the prior's range), each start is refined by
     ICP with each schedule of shrinking reaches in ``reaches_mm`` (:data:`ROUGH_REACHES_MM`; a global
@@ -685,7 +684,8 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
     if T_init is None:
         return global_search()
     T_init = np.asarray(T_init, float)
-    best = search(lambda a: [(T_init, _thinned(pts, ROUGH_ICP_POINTS))])
+    few = _thinned(pts, ROUGH_ICP_POINTS)  # one subsample for every candidate flexion
+    best = search(lambda a: [(T_init, few)])
     # how far the match lies from the guess, as the guess's own bounds are stated: a rotation, and the
     # motion of the knee's centre (model frame: on the femur's axis at the joint line, where the shank begins)
     turned, moved = placements_apart(skin, best.T_model_world, T_init)

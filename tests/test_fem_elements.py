@@ -160,7 +160,6 @@ def test_shared_stiffness_products_match_each_elements_own():
     assert shared_stiffness_groups(CorotationalElements(Xt, tets, 3.0, 0.3).K) is None
 
 
-
 def test_shared_stiffness_groups_refuse_matrices_whose_hashes_collide(monkeypatch):
     """The groups are found by one hash per matrix: where different matrices share a hash (every weight
     zero, so every hash is 0), the check against each matrix refuses the groups (None: the batched
@@ -178,6 +177,7 @@ def test_shared_stiffness_groups_refuse_matrices_whose_hashes_collide(monkeypatc
     Xu, hu = box_hexahedra((6, 4, 3), (60.0, 40.0, 30.0))
     groups = E.shared_stiffness_groups(CorotationalElements(Xu, hu, 3.0, 0.3).K)
     assert groups is not None and len(groups[2]) == 1
+
 
 def _cantilever(kind, n, L=100.0, h=10.0, E=1000.0, nu=0.3, P=1.0):
     X, cells = _mesh(kind, n=n, size=(L, h, h))

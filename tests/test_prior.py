@@ -519,7 +519,6 @@ def test_rough_registration_searches_a_large_cloud_with_a_subsample(volunteer, s
     assert rot < 10.0 and shift < 15.0, (rot, shift)
 
 
-
 def test_the_guess_is_refined_with_a_subsample_and_scored_on_every_point(volunteer, scene, monkeypatch):
     """From a guess, every ICP of the rough registration takes at most :data:`ROUGH_ICP_POINTS` of the
     thinned points (here lowered to a third of them): the match lands where every point's does (the same
@@ -550,6 +549,7 @@ def test_the_guess_is_refined_with_a_subsample_and_scored_on_every_point(volunte
     assert r.flexion == whole.flexion
     turned, moved = P.placements_apart(sk, r.T_model_world, whole.T_model_world)
     assert turned < 1.0 and moved < 1.0, (turned, moved)
+
 
 def test_the_global_search_refines_its_starts_with_a_subsample(volunteer, monkeypatch):
     """The global search's starts are refined with at most :data:`GLOBAL_ICP_POINTS` of the thinned points
