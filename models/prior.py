@@ -30,7 +30,7 @@ from trimesh.sample import sample_surface
 
 from knee.foundations.conventions import invert_poses, joint_to_pose, transform_points
 from knee.foundations.errors import KneeInputError
-from knee.foundations.pointclouds import connected_parts, icp, voxel_downsample
+from knee.foundations.pointclouds import connected_parts, icp, seeded_subsample, voxel_downsample
 from knee.foundations.surfaces import BandDistances, SurfaceQuery, clip_to_slab
 from knee.models.mechanism.solver import Mechanism
 from knee.models.phantom import Phantom
@@ -42,6 +42,12 @@ VOXEL_MM = 4.0
 
 #: ICP iterations per candidate of the coarse scan (it only ranks the candidates; the refinement uses 30).
 COARSE_ICP_ITERATIONS = 15
+#: Most points the coarse scan's ICPs take (a random, seeded subsample, the same for every candidate; each
+#: candidate is scored on all of them, and the refinement registers all of them). The scan only brackets
+#: the flexion for the refinement: on ten cases of the honest benchmark's seed 1 (views of 3,000-7,000
+#: thinned points) the footprints' median change is 0.000 mm, at 0.92 of the case's time
+#: (``scripts/bench_subsamples.py --subsample coarse``).
+COARSE_ICP_POINTS = 2000
 #: Fewest points, and fewest below the knee (shank), to attempt an estimate.
 MIN_POINTS = 500
 MIN_SHANK_POINTS = 150
@@ -296,14 +302,15 @@ def _checked_cloud(points) -> np.ndarray:
     return pts
 
 
-def _score(skin_model: SkinModel, alpha, points, init, iterations: int = 30, exact: bool = True):
-    """ICP of the points onto the skin posed at ``alpha``; the score is the trimmed RMS of the points'
-    distances to the skin: exact (the posed parts' signed distances), or with ``exact=False`` (the
-    coarse scan, which only ranks candidates 10 deg apart) to the tangent plane of each point's nearest
-    skin sample, about four times cheaper (the samples are about 5 mm apart on a skin of 60 mm radius:
-    the plane is within 0.2 mm of the surface there)."""
+def _score(skin_model: SkinModel, alpha, points, init, iterations: int = 30, exact: bool = True, icp_points=None):
+    """ICP of the points (or of ``icp_points``, a subsample of them) onto the skin posed at ``alpha``; the
+    score is the trimmed RMS of all the points' distances to the skin: exact (the posed parts' signed
+    distances), or with ``exact=False`` (the coarse scan, which only ranks candidates 10 deg apart) to the
+    tangent plane of each point's nearest skin sample, about four times cheaper (the samples are about 5 mm
+    apart on a skin of 60 mm radius: the plane is within 0.2 mm of the surface there)."""
     samples, normals, tree = skin_model.samples(alpha)
-    T, fitness, _ = icp(points, samples, init=init, max_distance=15.0, iterations=iterations, target_normals=normals)
+    T, fitness, _ = icp(points if icp_points is None else icp_points, samples, init=init, max_distance=15.0,
+                        iterations=iterations, target_normals=normals)
     p = transform_points(T, points)
     if exact:
         d = np.abs(skin_model.at(alpha).signed_distance(p))
@@ -347,8 +354,9 @@ def estimate_flexion(skin: SkinModel, points, T_init=None, coarse_step_deg: floa
     grid = np.arange(a0, a1 + 1e-9, math.radians(coarse_step_deg))
     scores = {}
     best = (np.inf, None, None, 0.0)
-    for a in grid:  # a coarse scan: a handful of ICPs (each vectorised inside open3d)
-        s, T, inl = _score(sk, a, pts, init, iterations=COARSE_ICP_ITERATIONS, exact=False)
+    few = seeded_subsample(pts, COARSE_ICP_POINTS)  # one subsample for every candidate
+    for a in grid:  # a coarse scan: a handful of ICPs (each vectorised inside open3d), each scored on every point
+        s, T, inl = _score(sk, a, pts, init, iterations=COARSE_ICP_ITERATIONS, exact=False, icp_points=few)
         scores[round(math.degrees(a), 3)] = s
         if s < best[0]:
             best = (s, a, T, inl)
@@ -456,14 +464,6 @@ GLOBAL_ICP_POINTS = 2000
 ROUGH_ICP_POINTS = GLOBAL_ICP_POINTS
 
 
-def _thinned(points: np.ndarray, most: int) -> np.ndarray:
-    """The points themselves when they are at most ``most``, else a random (seeded: the same every call)
-    subsample of that many, in their order."""
-    if len(points) <= most:
-        return points
-    return points[np.sort(np.random.default_rng(0).choice(len(points), most, replace=False))]
-
-
 @functools.lru_cache(maxsize=4)
 def _spread_rotations(n_directions: int = GLOBAL_DIRECTIONS, n_spins: int = GLOBAL_SPINS) -> np.ndarray:
     """Rotations (n, 3, 3) spread over all of them: z taken to each of ``n_directions`` directions on a
@@ -504,7 +504,7 @@ def view_starts(skin: SkinModel, points, flexions, viewpoint=(0.0, 0.0, 0.0)) ->
     the same views: 6 starts refined instead of :data:`GLOBAL_REFINED` missed 4 more, 100 points 2 more, two
     mean shifts 1 more; 9 starts refined none more, for 0.4 s of 3.1 s."""
     pts = np.asarray(points, float)
-    sub = _thinned(pts, GLOBAL_POINTS)
+    sub = seeded_subsample(pts, GLOBAL_POINTS)
     centre = sub.mean(axis=0)
     sight = centre - np.asarray(viewpoint, float)
     sight /= max(np.linalg.norm(sight), 1e-9)
@@ -598,7 +598,7 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
     it is returned without the global starts (a caller that first leaves out the background, then tries
     them). Raises :class:`KneeInputError` when the cloud is too small."""
     every = voxel_downsample(_checked_cloud(points), VOXEL_MM)
-    pts = _thinned(every, ROUGH_MAX_POINTS if max_points is None else int(max_points))
+    pts = seeded_subsample(every, ROUGH_MAX_POINTS if max_points is None else int(max_points))
     lo, hi = skin.mech.assembly_range
     cands = sorted({float(np.clip(math.radians(d), lo, hi)) for d in flexions_deg})
 
@@ -665,7 +665,7 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
         # rotations spread over all of them, each as the camera would see the skin (view_starts), from the
         # whole cloud and, where it falls into separate pieces (two legs, a leg and a box), from each large one:
         # the whole cloud's centre then lies between them, beyond the starts' mean shifts
-        few = _thinned(pts, GLOBAL_ICP_POINTS)
+        few = seeded_subsample(pts, GLOBAL_ICP_POINTS)
         top = [(a, T, few) for _, a, T in view_starts(skin, pts, cands, viewpoint)[:GLOBAL_REFINED]]
         pieces = connected_parts(pts, PIECE_GAP_MM)
         sizes = np.bincount(pieces)
@@ -674,7 +674,7 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
                 # a piece's starts refined with its own points (at most GLOBAL_ICP_POINTS; scored, as every
                 # match, on all of the cloud's)
                 piece = pts[pieces == k]
-                few = _thinned(piece, GLOBAL_ICP_POINTS)
+                few = seeded_subsample(piece, GLOBAL_ICP_POINTS)
                 top += [(a, T, few) for _, a, T in view_starts(skin, piece, cands, viewpoint)[:GLOBAL_REFINED]]
         return lambda a: [(T, src) for b, T, src in top if b == a]
 
@@ -684,7 +684,7 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
     if T_init is None:
         return global_search()
     T_init = np.asarray(T_init, float)
-    few = _thinned(pts, ROUGH_ICP_POINTS)  # one subsample for every candidate flexion
+    few = seeded_subsample(pts, ROUGH_ICP_POINTS)  # one subsample for every candidate flexion
     best = search(lambda a: [(T_init, few)])
     # how far the match lies from the guess, as the guess's own bounds are stated: a rotation, and the
     # motion of the knee's centre (model frame: on the femur's axis at the joint line, where the shank begins)

@@ -55,10 +55,13 @@ def test_example_fem_with_prior():
     # slid apart where they overlap: the same, they do not here; the virtual camera's pixel centres at whole
     # pixel coordinates, its rays half a pixel over: 2.605 mm, 3.764 mm, the correction 0.74 deg, the depth
     # noise falling on other points of the skin; the surface springs spread by skin area, the phantom's coarse
-    # skin's springs 3.2 times a vertex's: 2.644 mm, 3.863 mm)
-    assert r["footprints_mm"] == pytest.approx(2.644, abs=0.05)
-    assert r["epiphysis_mm"] == pytest.approx(3.863, abs=0.05)
-    assert r["tibia_correction_deg"] == pytest.approx(0.74, abs=0.1)
+    # skin's springs 3.2 times a vertex's: 2.644 mm, 3.863 mm; the thigh registered with 2,000 of its seen
+    # points instead of every third (its placement along the cylinder's axis moves with the points it gets;
+    # the coarse scan's subsample alone changes nothing here): 2.779 mm, 3.946 mm, the correction 0.74 -> 0.88
+    # deg, the flexion 0.41 -> 0.57 deg off)
+    assert r["footprints_mm"] == pytest.approx(2.779, abs=0.05)
+    assert r["epiphysis_mm"] == pytest.approx(3.946, abs=0.05)
+    assert r["tibia_correction_deg"] == pytest.approx(0.88, abs=0.1)
 
 
 def readme_snippets() -> list[str]:

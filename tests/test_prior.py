@@ -90,6 +90,40 @@ def test_flexion_from_depth_and_kinematics_alone(volunteer, scene):
     assert zero.tibia.footprints.mean == 0.0
 
 
+def test_the_coarse_scan_registers_a_subsample_and_scores_every_point(volunteer, scene, monkeypatch):
+    """The flexion estimate's coarse scan registers at most :data:`COARSE_ICP_POINTS` of the thinned points
+    (here lowered to a third of them), the same subsample at every candidate, and scores each candidate on
+    every thinned point (its trimmed RMS computed here from that ICP's transform, independently); the
+    refinement registers all of them. The estimate stays within 0.5 deg of every point's."""
+    import knee.models.prior as P
+    from knee.foundations.pointclouds import icp
+
+    ph, _, pts = scene
+    sk = SkinModel(volunteer, ph)
+    every = voxel_downsample(pts, P.VOXEL_MM)
+    monkeypatch.setattr(P, "COARSE_ICP_POINTS", len(every))
+    whole = estimate_flexion(sk, pts)
+    few = len(every) // 3
+    monkeypatch.setattr(P, "COARSE_ICP_POINTS", few)
+    calls = []
+    monkeypatch.setattr(P, "icp", lambda src, *a, **k: calls.append((np.array(src), k["iterations"]))
+                        or icp(src, *a, **k))
+    est = estimate_flexion(sk, pts)
+    coarse = [src for src, it in calls if it == P.COARSE_ICP_ITERATIONS]
+    assert len(coarse) >= 10 and all(np.array_equal(src, coarse[0]) for src in coarse)
+    assert len(coarse[0]) == few and len({tuple(p) for p in coarse[0]} - {tuple(p) for p in every}) == 0
+    assert {len(src) for src, it in calls if it != P.COARSE_ICP_ITERATIONS} == {len(every)}
+    assert abs(est.flexion - whole.flexion) < math.radians(0.5)
+    a = math.radians(65.0)  # a candidate of the scan (-5, 5, ..., 65, ...)
+    samples, normals, tree = sk.samples(a)
+    T = icp(coarse[0], samples, init=np.eye(4), max_distance=15.0, iterations=P.COARSE_ICP_ITERATIONS,
+            target_normals=normals)[0]
+    p = transform_points(T, every)
+    _, j = tree.query(p)
+    d = np.sort(np.abs(np.sum((p - samples[j]) * normals[j], axis=1)))
+    assert est.scores[65.0] == pytest.approx(float(np.sqrt(np.mean(d[: int(0.9 * len(d))] ** 2))), rel=1e-9)
+
+
 def test_point_clouds_that_cannot_show_the_flexion_are_refused(volunteer, scene):
     ph, tf, pts = scene
     with pytest.raises(KneeInputError, match="at least 500"):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from knee.foundations.pointclouds import thinned_evenly
+from knee.foundations.pointclouds import seeded_subsample, thinned_evenly
 from knee.foundations.surfaces import SurfaceQuery
 
 
@@ -26,6 +26,19 @@ def test_even_thinning_keeps_input_points_spread_over_them():
     # within its diagonal of the one it keeps
     assert gap.max() < 20.0
     assert pts[keep][:, 0].max() > 90.0 and pts[keep][:, 0].min() < 10.0  # the whole extent, not a corner
+
+
+def test_a_seeded_subsample_is_the_same_ordered_subset_every_call():
+    """At most ``most`` of the points, all of them (the array itself) when they are that few; otherwise
+    distinct input rows in their input order, the same on every call, and drawn over the whole input rather
+    than its first rows."""
+    pts = np.random.default_rng(5).uniform(0.0, 100.0, (5000, 3))
+    assert np.array_equal(seeded_subsample(pts[:300], 300), pts[:300])
+    sub = seeded_subsample(pts, 1000)
+    assert sub.shape == (1000, 3) and np.array_equal(sub, seeded_subsample(pts, 1000))
+    rows = {tuple(p): i for i, p in enumerate(pts)}
+    idx = np.array([rows[tuple(p)] for p in sub])
+    assert np.all(np.diff(idx) > 0) and idx.max() > 4000 and idx.min() < 1000
 
 
 def test_the_bones_clearance_asks_only_the_near_points_and_gives_the_same_answer(volunteer_anatomy):

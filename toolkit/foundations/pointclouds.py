@@ -243,6 +243,16 @@ def voxel_downsample(points, voxel: float) -> np.ndarray:
     return out / counts[:, None]
 
 
+def seeded_subsample(points, most: int) -> np.ndarray:
+    """The points themselves when they are at most ``most``, else a random subsample of that many, in
+    their order, seeded: the same points on every call with the same input (a registration's result does
+    not depend on when it ran)."""
+    points = np.asarray(points)
+    if len(points) <= most:
+        return points
+    return points[np.sort(np.random.default_rng(0).choice(len(points), most, replace=False))]
+
+
 def thinned_evenly(points, most: int) -> np.ndarray:
     """The indices (sorted) of at most ``most`` of ``points`` (P, 3) spread evenly over them: all of them when
     they are that few; else one point (the first) per voxel, the voxel's edge grown by a quarter from 1/200
