@@ -298,8 +298,9 @@ def register_to_model(model: AssociationModel, points, iterations: int = 60) -> 
 #: :func:`place_along_thigh`): a random, seeded subsample. Every third point had been taken (15,000-44,000 of
 #: a view's), and a phantom's cylindrical thigh sends each of the five registrations to point-to-point ICP,
 #: 0.2-0.3 s each on that many. Measured on the honest benchmark (BENCHMARKS.md): 0.92 of the case's time
-#: (seed 1, ten cases, the same process), and the footprints moved both ways: seed 0's mean change per case
-#: -0.04 mm, seed 1's +0.04 (a near-cylinder's placement along its axis is sensitive to which points it gets).
+#: (seed 1, ten cases, the same process), and the footprints moved both ways: the mean change per case -0.04,
+#: +0.04 and +0.04 mm on seeds 0-2, up to 0.7 mm on a case (a near-cylinder's placement along its axis moves
+#: 0.1-0.4 mm with the points it gets).
 THIGH_ICP_POINTS = 2000
 
 
