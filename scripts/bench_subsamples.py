@@ -17,6 +17,7 @@ and CPU time, the median per-case ratio of the two, and the footprint errors' me
 from __future__ import annotations
 
 import argparse
+import contextlib
 import statistics
 import sys
 from pathlib import Path
@@ -45,8 +46,6 @@ def main() -> int:
 
 def _subsamples(text: str) -> list[str]:
     """``--subsample``'s names, comma-separated, each one of :data:`SUBSAMPLES`."""
-    import argparse
-
     which = [w.strip() for w in text.split(",") if w.strip()]
     if not which or any(w not in SUBSAMPLES for w in which):
         raise argparse.ArgumentTypeError(f"must be some of {', '.join(SUBSAMPLES)} (comma-separated), got {text}")
@@ -81,8 +80,6 @@ class Baseline:
 
 
 def run(folder: Path, every: int, which) -> int:
-    import contextlib
-
     from knee.app.experiments.case_set import iter_cases, run_case
 
     rows = {"subsample": [], "every point": []}
