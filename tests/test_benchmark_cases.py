@@ -606,6 +606,45 @@ def test_in_contact_slides_the_tibia_along_its_axis_to_the_clearance():
     assert np.linalg.norm(moved) == pytest.approx(5.0, abs=1.0)
 
 
+def test_in_contact_bracketed_near_the_pose_finds_the_same_slide_with_fewer_clearances(monkeypatch):
+    """Given the clearance at the pose (``now``), the slide is bracketed from the shortfall (the least signed
+    distance moves no faster than the bone) instead of over the whole 30 mm reach: the same slide within
+    brentq's 0.01 mm, from fewer clearances. Pushes along and across the axis, tilted, deep and shallow; a
+    bracket that missed the root (say from a sign slip, sliding proximally) would land elsewhere or raise."""
+    from knee.models.fem import anatomy as anat_mod
+    from knee.models.fem.anatomy import bone_clearance, bone_queries, in_contact
+    from knee.models.fem.scene import phantom_anatomy
+    from knee.models.mechanism import Mechanism
+    from knee.models.prior import small_pose
+
+    anatomy, _ = phantom_anatomy(Mechanism.from_name("volunteer"))
+    queries = bone_queries(anatomy)
+    c0 = bone_clearance(anatomy, anatomy.tibia_pose, queries)
+    calls = {"n": 0}
+    real = anat_mod.bone_clearance
+
+    def counted(*a, **k):
+        calls["n"] += 1
+        return real(*a, **k)
+
+    monkeypatch.setattr(anat_mod, "bone_clearance", counted)
+    for xi in ([0, 0, 0, 0, 5.0, 0], [0.05, 0, 0.03, 1.0, 2.0, 0.5], [0, 0.08, -0.06, -1.5, 0.3, 1.0],
+               [0, 0, 0, 0, 0.4, 0]):
+        T = anatomy.tibia_pose @ small_pose(np.asarray(xi, float))
+        now = real(anatomy, T, queries)
+        assert now < c0  # pushed into the femur
+        calls["n"] = 0
+        full = in_contact(anatomy, T, c0, queries=queries)
+        n_full = calls["n"]
+        calls["n"] = 0
+        near = in_contact(anatomy, T, c0, queries=queries, now=now)
+        n_near = calls["n"]
+        np.testing.assert_allclose(near[:3, :3], T[:3, :3], atol=1e-12)
+        assert abs((near[:3, 3] - full[:3, 3]) @ T[:3, 1]) < 0.02
+        assert real(anatomy, near, queries) == pytest.approx(c0, abs=0.02)
+        assert n_near < n_full
+
+
 def test_measured_poses_keep_the_real_knees_bones_apart(shared_data):
     """lenhart2015's motion carried to the Visible Human knee: as carried, its tibia enters the femur by
     millimetres (the failure this guards); after the slide every pose keeps the scanned clearance plus the

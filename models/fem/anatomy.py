@@ -250,11 +250,14 @@ def bone_clearance(anatomy, T_tibia, queries=None) -> float:
     return float(min(signed(femur_q, tib), signed(tibia_q, fem)))
 
 
-def in_contact(anatomy, T_tibia, clearance: float, reach_mm: float = 30.0, queries=None) -> np.ndarray:
+def in_contact(anatomy, T_tibia, clearance: float, reach_mm: float = 30.0, queries=None,
+               now: float | None = None) -> np.ndarray:
     """``T_tibia`` (4, 4; the tibia's frame in the femur frame) slid along the tibia's own long axis (its y)
     until the bones are ``clearance`` apart (:func:`bone_clearance`), within 0.01 mm: along that axis the
     joint's contact, not the motion carried from another knee, decides where the tibia is. ``queries``:
-    :func:`bone_queries` of the anatomy, when already built."""
+    :func:`bone_queries` of the anatomy, when already built. ``now``: the bones' clearance at ``T_tibia``,
+    when already known; below ``clearance`` it brackets the slide near the pose (:func:`_parting_bracket`)
+    instead of over the whole reach."""
     T = np.asarray(T_tibia, float)
     queries = bone_queries(anatomy) if queries is None else queries
 
@@ -266,8 +269,39 @@ def in_contact(anatomy, T_tibia, clearance: float, reach_mm: float = 30.0, queri
     def f(s):
         return bone_clearance(anatomy, slid(s), queries) - clearance
 
-    lo, hi = -reach_mm, reach_mm  # sliding proximally (s > 0) brings the bones together
-    if f(lo) < 0.0 or f(hi) > 0.0:
-        raise KneeError(f"the tibia cannot be brought to {clearance:.2f} mm from the femur within {reach_mm:.0f} mm "
-                        "along its axis")
-    return slid(brentq(f, lo, hi, xtol=0.01))
+    bracket = None if now is None or now >= clearance else _parting_bracket(f, clearance - now, reach_mm)
+    if bracket is None:
+        lo, hi = -reach_mm, reach_mm  # sliding proximally (s > 0) brings the bones together
+        if f(lo) < 0.0 or f(hi) > 0.0:
+            raise KneeError(f"the tibia cannot be brought to {clearance:.2f} mm from the femur within "
+                            f"{reach_mm:.0f} mm along its axis")
+        bracket = (lo, hi)
+    lo, hi = bracket
+    return slid(lo if lo == hi else brentq(f, lo, hi, xtol=0.01))
+
+
+#: The least first step (mm) of :func:`_parting_bracket`'s search beyond the shortfall: a tiny shortfall
+#: doubled from itself would take many clearances to reach a parting slide of a few tenths of a mm.
+PARTING_STEP_MM = 0.25
+
+
+def _parting_bracket(f, short: float, reach_mm: float) -> tuple[float, float] | None:
+    """A bracket [lo, hi] (mm, along the tibia's axis, lo <= hi <= 0) of the slide where ``f`` (the clearance
+    less the one asked, as a function of the slide) crosses zero, for bones ``short`` mm closer than asked
+    at no slide; None when none is found within ``reach_mm``. The least signed distance between two
+    surfaces changes by at most the distance one of them moves, so the bones part by the shortfall no
+    sooner than after a slide of that length distally: f(-short) <= 0, and the bracket grows from there
+    (doubling the step, at least :data:`PARTING_STEP_MM`) until f >= 0."""
+    hi = -short
+    if f(hi) >= 0.0:  # exactly parted there (the slide along the clearance's gradient)
+        return hi, hi
+    step = max(short, PARTING_STEP_MM)
+    while step < 2.0 * reach_mm:
+        lo = max(hi - step, -reach_mm)
+        f_lo = f(lo)
+        if f_lo >= 0.0:
+            return lo, hi
+        if lo <= -reach_mm:
+            return None
+        hi, step = lo, 2.0 * step
+    return None

@@ -970,16 +970,17 @@ def keep_bones_apart(model: AssociationModel, T_tibia) -> tuple[np.ndarray, np.n
     T = np.asarray(T_tibia, float)
     queries = bone_queries(anat)  # once, for the scan's clearance, this pose's and the slide's
     c0 = bone_clearance(anat, anat.tibia_pose, queries)
-    if bone_clearance(anat, T, queries) >= c0:
+    now = bone_clearance(anat, T, queries)
+    if now >= c0:
         return T, np.zeros(3)
-    out = in_contact(anat, T, c0, queries=queries)
+    out = in_contact(anat, T, c0, queries=queries, now=now)
     return out, out[:3, 3] - T[:3, 3]
 
 
 def prior_method(method: str, model: AssociationModel, prior: Mechanism, points, max_steps: int = 80,
                  femur_from: str = "thigh", refine_on_posed_skin: bool = True, flexion_skin: str = "blend",
                  weigh_axial: bool = True, apart_share: float | None = APART_FEMUR_SHARE, shank_skin: str = "fem",
-                 **paper_options) -> Reconstruction:
+                 skin: SkinModel | None = None, **paper_options) -> Reconstruction:
     """Methods (ii) ``"init"``, (iii) ``"links"`` and (iv) ``"kinematics"`` (and (i) ``"paper"``, for
     one entry point to all four) on a point cloud (P, 3), mm, world frame, with ``prior`` the (fitted)
     mechanism of the subject the model was built from. See the module docstring for the methods and
@@ -1010,7 +1011,10 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     this share of the slide (:data:`APART_FEMUR_SHARE`) and the tibia the rest; None: left as placed.
     ``shank_skin`` (:data:`SHANK_SKINS`): the tibia's second correction, after the femur's placement on the
     posed skin, against the shank as the initialisation posed it ("fem", :func:`fem_posed_shank`) or as the
-    flexion estimate carries it rigidly ("blend"). Measured on the honest benchmark (BENCHMARKS.md)."""
+    flexion estimate carries it rigidly ("blend"). Measured on the honest benchmark (BENCHMARKS.md).
+    ``skin``: the flexion estimate's skin model when already built (:func:`skin_model` of this model, prior
+    and ``flexion_skin``, as :func:`reconstruct_in_camera` builds it for the rough registration), so that its
+    set-up and the angles it has posed are not made again."""
     if method not in METHODS:
         raise KneeInputError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     _check_flexion_skin(flexion_skin)  # here, not as a failed estimate that falls back to the paper's method
@@ -1024,7 +1028,7 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     t0 = time.perf_counter()
     pts = np.asarray(points, float)
     try:
-        est = estimate_flexion(skin_model(model, prior, flexion_skin), pts)
+        est = estimate_flexion(skin_model(model, prior, flexion_skin) if skin is None else skin, pts)
     except KneeInputError as e:
         if method == "kinematics":
             raise
@@ -1204,7 +1208,7 @@ def reconstruct_in_camera(model: AssociationModel, prior: Mechanism, points_cam,
                              f"of them lie within 5 mm of its skin (RMS {rough.rms:.1f} mm)"
                              + (f", with the {dropped} points far from it left out" if dropped else ""))
     pts = transform_points(rough.T_model_world, points_cam)
-    recon = prior_method(method, model, prior, pts, max_steps=max_steps, **options)
+    recon = prior_method(method, model, prior, pts, max_steps=max_steps, skin=skin, **options)
     if dropped:
         recon.notes.insert(0, f"{dropped} of the {dropped + len(points_cam)} points were left out as background (a "
                               f"table, a wall, the other leg): on a dominant plane, or over {BACKGROUND_MM:g} mm from "
