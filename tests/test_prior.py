@@ -48,6 +48,20 @@ def test_voxel_downsample_against_a_per_point_grouping():
     np.testing.assert_allclose(out, ref, atol=1e-9)
 
 
+def test_column_bounds_are_the_columns_least_and_greatest():
+    """Column by column, the same as min/max along the rows, for floats, integers and a strided view (a
+    slip to the rows' bounds, or a dtype changed on the way, would show)."""
+    from knee.foundations.pointclouds import column_bounds
+
+    rng = np.random.default_rng(7)
+    for a in (rng.normal(size=(500, 3)) * 50.0, rng.integers(-900, 900, size=(400, 3)),
+              rng.normal(size=(600, 5))[::3, 1:4]):
+        lo, hi = column_bounds(a)
+        np.testing.assert_array_equal(lo, a.min(axis=0))
+        np.testing.assert_array_equal(hi, a.max(axis=0))
+        assert lo.dtype == a.dtype and hi.dtype == a.dtype
+
+
 def test_posed_skin_by_parts_matches_the_union_mesh(volunteer, scene):
     """The skin queried part by part (no union built) against the union mesh's own signed distance and
     surface: the same distances away from the creases, and samples on the union's surface only."""

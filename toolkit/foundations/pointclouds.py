@@ -223,12 +223,22 @@ def connected_parts(points, gap: float) -> np.ndarray:
     return rank[labels]
 
 
+def column_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The least and the greatest value of each column of ``points`` (P, k), as ``min(axis=0)`` and
+    ``max(axis=0)`` give them, a column at a time: a reduction along the rows of a C-ordered (P, 3) array
+    strides through it (about ten times slower on a depth image's 200,000 points, 5 against 0.4 ms)."""
+    cols = range(points.shape[1])
+    return (np.array([points[:, k].min() for k in cols], dtype=points.dtype),
+            np.array([points[:, k].max() for k in cols], dtype=points.dtype))
+
+
 def _voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
     """Each point's voxel (edge ``voxel``) as one integer: its three indices packed, so that grouping the
     points by voxel is a 1-D unique."""
     ijk = np.floor(points / voxel).astype(np.int64)
-    ijk -= ijk.min(axis=0)
-    span = ijk.max(axis=0) + 1
+    lo, hi = column_bounds(ijk)
+    ijk -= lo
+    span = hi - lo + 1
     return (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
 
 
@@ -261,7 +271,7 @@ def thinned_evenly(points, most: int) -> np.ndarray:
     points = np.asarray(points, float)
     if len(points) <= most:
         return np.arange(len(points))
-    rel = points - points.min(axis=0)  # the voxels start at the points' lowest corner
+    rel = points - column_bounds(points)[0]  # the voxels start at the points' lowest corner
     h = float(rel.max()) / 200.0
     while True:
         _, first = np.unique(_voxel_keys(rel, h), return_index=True)
@@ -286,9 +296,9 @@ class NearCloud:
         if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
             raise KneeInputError(f"the cloud must be a non-empty (P, 3) array, got shape {pts.shape}")
         self.edge = float(reach) * (1.0 + 1e-9)  # rounding at a cell's face stays on the safe side
-        self.origin = pts.min(axis=0) - self.edge  # one empty cell of margin below ...
+        self.origin = column_bounds(pts)[0] - self.edge  # one empty cell of margin below ...
         ijk = np.floor((pts - self.origin) / self.edge).astype(np.int64)
-        self.span = ijk.max(axis=0) + 2  # ... and above
+        self.span = column_bounds(ijk)[1] + 2  # ... and above
         if float(np.prod(self.span.astype(float))) >= 2.0 ** 62:
             raise KneeInputError(f"the cloud spans too many cells of {reach} mm to index "
                                  f"({' x '.join(str(int(n)) for n in self.span)})")
