@@ -611,6 +611,7 @@ def test_in_contact_bracketed_near_the_pose_finds_the_same_slide_with_fewer_clea
     distance moves no faster than the bone) instead of over the whole 30 mm reach: the same slide within
     brentq's 0.01 mm, from fewer clearances. Pushes along and across the axis, tilted, deep and shallow; a
     bracket that missed the root (say from a sign slip, sliding proximally) would land elsewhere or raise."""
+    from knee.foundations.errors import KneeError
     from knee.models.fem import anatomy as anat_mod
     from knee.models.fem.anatomy import bone_clearance, bone_queries, in_contact
     from knee.models.fem.scene import phantom_anatomy
@@ -643,6 +644,12 @@ def test_in_contact_bracketed_near_the_pose_finds_the_same_slide_with_fewer_clea
         assert abs((near[:3, 3] - full[:3, 3]) @ T[:3, 1]) < 0.02
         assert real(anatomy, near, queries) == pytest.approx(c0, abs=0.02)
         assert n_near < n_full
+    # no parting slide within the reach: the same clear error with the bracket as without it
+    T = anatomy.tibia_pose @ small_pose(np.array([0, 0, 0, 0, 5.0, 0]))
+    now = real(anatomy, T, queries)
+    for given in (None, now):
+        with pytest.raises(KneeError, match="cannot be brought to"):
+            in_contact(anatomy, T, c0, reach_mm=1.0, queries=queries, now=given)
 
 
 def test_measured_poses_keep_the_real_knees_bones_apart(shared_data):

@@ -292,16 +292,15 @@ def _parting_bracket(f, short: float, reach_mm: float) -> tuple[float, float] | 
     surfaces changes by at most the distance one of them moves, so the bones part by the shortfall no
     sooner than after a slide of that length distally: f(-short) <= 0, and the bracket grows from there
     (doubling the step, at least :data:`PARTING_STEP_MM`) until f >= 0."""
+    if short >= reach_mm:
+        return None
     hi = -short
     if f(hi) >= 0.0:  # exactly parted there (the slide along the clearance's gradient)
         return hi, hi
     step = max(short, PARTING_STEP_MM)
-    while step < 2.0 * reach_mm:
+    while hi > -reach_mm:  # ends: each pass moves lo further out, down to the reach
         lo = max(hi - step, -reach_mm)
-        f_lo = f(lo)
-        if f_lo >= 0.0:
+        if f(lo) >= 0.0:
             return lo, hi
-        if lo <= -reach_mm:
-            return None
         hi, step = lo, 2.0 * step
     return None
