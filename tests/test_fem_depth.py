@@ -415,6 +415,47 @@ def flying_scene(knee_like):
     return cam, clean, knee, d, flying, leg
 
 
+def _mixed_pixels_pixel_by_pixel(d, K, footprints, support):
+    """The definition of a flying pixel, pixel by pixel: seen, stepping from a seen neighbour by more than
+    ``footprints`` footprints of the nearer, and continued by fewer than ``support`` seen neighbours."""
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    h, w = d.shape
+    out = np.zeros(d.shape, bool)
+    for v in range(h):
+        for u in range(w):
+            if not d[v, u] > 0:
+                continue
+            worst, fine = 0.0, 0
+            for dv in (-1, 0, 1):
+                for du in (-1, 0, 1):
+                    y, x = v + dv, u + du
+                    if (dv or du) and 0 <= y < h and 0 <= x < w and d[y, x] > 0:
+                        step = abs(d[y, x] - d[v, u]) / (min(d[y, x], d[v, u]) / f)
+                        worst, fine = max(worst, step), fine + (step <= footprints)
+            out[v, u] = worst > footprints and fine < support
+    return out
+
+
+@pytest.mark.parametrize("footprints, support", [(25.0, 3), (3.0, 2), (25.0, 9)])
+def test_mixed_pixels_as_defined_pixel_by_pixel(footprints, support):
+    """The whole-image shifts (each neighbour pair once, within the seen pixels' box) give what the definition
+    gives pixel by pixel, at the image's borders, beside holes and across steps of either sign: a wrong
+    shift, a pair counted for one pixel only or a box cut one pixel short would differ."""
+    rng = np.random.default_rng(3)
+    K = np.array([[500.0, 0.0, 12.0], [0.0, 480.0, 9.0], [0.0, 0.0, 1.0]])
+    d = 400.0 + 40.0 * rng.random((18, 23))
+    d[:, 11:] += 300.0                                   # a depth edge down the middle
+    d[rng.random(d.shape) < 0.15] = 0.0                 # dropout
+    d[:2] = 0.0                                          # unseen rows and a column: the seen box is smaller
+    d[:, -1] = 0.0
+    d[7, 11] = 550.0                                     # a blend on the edge
+    expected = _mixed_pixels_pixel_by_pixel(d, K, footprints, support)
+    assert expected.any() and not expected.all()
+    assert np.array_equal(mixed_pixels(d, K, footprints, support), expected)
+    assert np.array_equal(mixed_pixels(d[:, ::-1], K, footprints, support), expected[:, ::-1])
+    assert not mixed_pixels(np.zeros((4, 5)), K).any()
+
+
 def test_mixed_pixels_are_the_blends_at_depth_edges_not_a_steep_surface_noise_or_holes(flying_scene):
     """A depth camera's flying pixels, blends of the knee in front and a wall 300 mm behind it in a band two
     pixels wide around the knee's outline, are found (all but a few) and left out, so hardly a point lies

@@ -80,19 +80,30 @@ def mixed_pixels(depth: np.ndarray, K: np.ndarray, footprints: float = EDGE_FOOT
     K = np.asarray(K, dtype=float)
     f = 0.5 * (K[0, 0] + K[1, 1])
     seen = np.isfinite(d) & (d > 0)
-    z = np.where(seen, d, np.nan)
-    padded = np.pad(z, 1, constant_values=np.nan)
-    h, w = d.shape
-    worst = np.zeros_like(d)
-    smooth = np.zeros(d.shape, np.int8)
-    for dv in (-1, 0, 1):  # the eight neighbours: eight whole-image shifts
-        for du in (-1, 0, 1):
-            if dv or du:
-                other = padded[1 + dv:1 + dv + h, 1 + du:1 + du + w]
-                step = np.abs(other - z) / (np.fmin(other, z) / f)  # NaN where either is unseen
-                worst = np.fmax(worst, np.where(np.isnan(step), 0.0, step))
-                smooth += step <= footprints
-    return seen & (worst > footprints) & (smooth < support)
+    out = np.zeros(d.shape, bool)
+    rows, cols = np.flatnonzero(seen.any(axis=1)), np.flatnonzero(seen.any(axis=0))
+    if rows.size == 0:
+        return out
+    # only the seen pixels' bounding box: a pair with an unseen pixel is neither a step nor support
+    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    z = np.where(seen[box], d[box], np.nan)
+    h, w = z.shape
+    worst = np.zeros_like(z)
+    smooth = np.zeros(z.shape, np.int8)
+    # the eight neighbours as four whole-image shifts: a step is the same seen from either pixel of a pair
+    # (right, down-left, down, down-right), so each pair's is computed once and given to both
+    for dv, du in ((0, 1), (1, -1), (1, 0), (1, 1)):
+        a = (slice(0, h - dv), slice(max(-du, 0), w - max(du, 0)))   # the pixels
+        b = (slice(dv, h), slice(max(du, 0), w - max(-du, 0)))       # their neighbours
+        za, zb = z[a], z[b]
+        step = np.abs(zb - za) / (np.fmin(za, zb) / f)  # NaN where either is unseen
+        edge = np.where(np.isnan(step), 0.0, step)
+        fine = step <= footprints
+        for s in (a, b):
+            np.fmax(worst[s], edge, out=worst[s])
+            smooth[s] += fine
+    out[box] = seen[box] & (worst > footprints) & (smooth < support)
+    return out
 
 
 #: A point of a cloud is taken for a flying pixel (:func:`sparse_points`) where its 8th nearest neighbour is
