@@ -69,7 +69,7 @@ def main() -> int:
 def run(folder: Path, every: int, repeats: int) -> list[dict]:
     import numpy as np
 
-    from knee.app.experiments.case_set import read_case_set
+    from knee.app.experiments.case_set import case_intrinsics, read_case_set
     from knee.foundations.errors import KneeError
     from knee.foundations.pointclouds import EDGE_FOOTPRINTS, EDGE_SUPPORT, mixed_pixels
 
@@ -80,8 +80,7 @@ def run(folder: Path, every: int, repeats: int) -> list[dict]:
 
     rows = []
     for case in read_case_set(folder)["case"][::every]:
-        fx, fy, cx, cy = case["intrinsics"]
-        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        K = case_intrinsics(case)
         depth = np.load(folder / case["depth"]).astype(float)
         times = {"new": ([], []), "old": ([], [])}
         for i in range(repeats):

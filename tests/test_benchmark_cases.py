@@ -482,16 +482,13 @@ def test_the_global_search_finds_each_views_knee(small_case_set):
     true femur (the skin mismatch leaves the match from the truth itself 6-7 deg and 7-17 mm off). Shape
     features (FPFH + RANSAC, the previous global registration) turned three of these four over (176-180 deg
     off)."""
-    from knee.app.experiments.case_set import iter_cases
-    from knee.foundations.pointclouds import backproject
+    from knee.app.experiments.case_set import case_points_cam, iter_cases
     from knee.models.fem.methods import skin_model
     from knee.models.fem.scene import build_knee_model
     from knee.models.prior import register_roughly
 
     for c, (anatomy, prior, T_ct_model), _, _ in iter_cases(small_case_set):
-        fx, fy, cx, cy = c["intrinsics"]
-        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-        pts = backproject(np.load(small_case_set / c["depth"]).astype(float), K, drop_mixed=True)  # camera frame
+        pts = case_points_cam(small_case_set, c)  # camera frame
         skin = skin_model(build_knee_model(anatomy, prior=prior), prior)
         r = register_roughly(skin, pts)
         D = r.T_model_world @ np.asarray(c["T_camera_femur_ct"]) @ T_ct_model  # model -> model: identity if right
@@ -896,7 +893,7 @@ def test_tissue_floor_is_zero_on_the_models_own_posed_skin(small_case_set):
     (the points taken into the femur's frame wrongly would put it millimetres off), and the model's tibia is
     the true one (posed off it, on the prior's path, it would be millimetres away); on the case's own image (the truth's other tissue) it is not
     zero, and the case set's floor measures that."""
-    from knee.app.experiments.case_set import iter_cases
+    from knee.app.experiments.case_set import case_intrinsics, iter_cases
     from knee.app.experiments.skin_floor import _cloud, tibia_tissue_floor_poses, tissue_floor, tissue_floor_pose
     from knee.foundations.conventions import invert_poses
     from knee.foundations.pointclouds import backproject
@@ -917,8 +914,8 @@ def test_tissue_floor_is_zero_on_the_models_own_posed_skin(small_case_set):
     tip = np.array([0.0, anatomy.joint_y - 40.0, 0.0, 1.0])  # a point of the tibia, 40 mm below the joint line
     assert np.linalg.norm((T_tibia @ tip - invert_poses(Tf) @ Tt @ tip)[:3]) < 0.3
     skin = TrilinearMapping(model.grid, model.skin_vertices).apply(model.solver.x)
-    fx, fy, cx, cy = c["intrinsics"]
-    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    K = case_intrinsics(c)
+    cx, cy = K[0, 2], K[1, 2]
     cam = Camera(K, int(round(2 * cx)), int(round(2 * cy)), invert_poses(Tf))  # the camera in the model frame
     own = backproject(render_depth(skin, model.skin_faces, cam), K)
     T_est = tissue_floor_pose(anatomy, prior, own, Tf, Tt, model=model)

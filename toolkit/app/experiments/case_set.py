@@ -521,11 +521,15 @@ def seen_shank_points(anatomy, points_cam, T_cam_tibia) -> int:
     return int(np.count_nonzero(local[:, 1] < anatomy.joint_y - SHANK_BELOW_WIDTHS * anatomy.width))
 
 
+def case_intrinsics(case: dict) -> np.ndarray:
+    """A case's camera intrinsics ``K`` (3, 3), pixels, from its ``intrinsics`` (fx, fy, cx, cy)."""
+    fx, fy, cx, cy = case["intrinsics"]
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
 def case_points_cam(folder: Path, case: dict) -> np.ndarray:
     """A case's depth points (P, 3), mm, in its camera's frame, as a measured image's (mixed pixels left out)."""
-    fx, fy, cx, cy = case["intrinsics"]
-    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    return backproject(np.load(Path(folder) / case["depth"]).astype(float), K, drop_mixed=True)
+    return backproject(np.load(Path(folder) / case["depth"]).astype(float), case_intrinsics(case), drop_mixed=True)
 
 
 def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T_ct_model, stages: bool = False,
