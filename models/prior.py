@@ -57,6 +57,14 @@ SHANK_SEARCH_MM = 10.0
 #: Fewest registered points on the shank's own skin (nearest to it, within 5 mm) below which the estimate
 #: warns that the flexion is seen only through the knee's outline.
 MIN_SEEN_SHANK = 100
+#: The estimate's fit (mm: the RMS of the nearest 90 % of the points' distances to the posed skin) above which
+#: it warns that the points do not match the subject's skin. A depth camera's noise at a knee's distance (a
+#: D435's rated 1.6 mm at 400 mm) and a skin 2 mm RMS off the scanned one (the honest benchmark's largest
+#: mismatch) give about 2.6 mm together. Measured: the benchmark's views fit within 2.5 mm (328 of the 329 views
+#: of its five seeds and of lenhart2015's seed 0; the other, 10.0 mm, is a registration settled in a wrong
+#: place, the mechanism alone 16 mm off there), a synthetic subject's view read with the intrinsics of half
+#: its resolution 9.7 mm.
+POOR_FIT_RMS_MM = 3.0
 #: The thigh's and the shank's indices among the skin's parts (:meth:`knee.models.phantom.Phantom.skin_parts`:
 #: thigh, shank, knee, patella).
 THIGH, SHANK = 0, 1
@@ -393,6 +401,12 @@ def estimate_flexion(skin: SkinModel, points, T_init=None, coarse_step_deg: floa
     if contrast < 1.02:
         warnings.append(f"the fit hardly changes with flexion (second-best / best score {contrast:.3f}): the view "
                         "shows too little of the flexion")
+    if s > POOR_FIT_RMS_MM:
+        warnings.append(f"the subject's skin fits the points poorly ({s:.1f} mm RMS over the nearest 90 %, "
+                        f"{100 * inl:.0f} % within 5 mm; a view of the scanned skin fits within about "
+                        f"{POOR_FIT_RMS_MM:.0f} mm): the points may not show this skin as scanned (the intrinsics, "
+                        "the depth scale, the side, clothing), or the registration settled in a wrong place; the "
+                        "flexion estimate is not reliable, and the result may not be")
     shank = seen_shank_points(sk.at(a), transform_points(T, pts))
     if shank < MIN_SEEN_SHANK:
         warnings.append(f"the shank is hardly seen ({shank} depth points on it, after {VOXEL_MM:.0f} mm voxels): the "

@@ -11,6 +11,8 @@ from scipy.spatial.transform import Rotation
 from knee.foundations.conventions import cardan_to_matrix
 from knee.foundations.errors import KneeInputError
 from knee.foundations.pointclouds import (
+    PRINCIPAL_POINT_SHARE,
+    principal_point_note,
     backproject,
     icp,
     icp_held,
@@ -541,3 +543,21 @@ def test_the_noise_models_flying_pixels_blend_the_surfaces_at_each_outline(knee_
         steps, iterations=4)]) == pytest.approx(150.0, abs=15.0)  # even over the 300 mm behind the outline
     far = blend & (d - front > 10.0) & (front + 300.0 - d > 10.0)
     assert mixed_pixels(d, cam.K)[far].mean() > 0.9
+
+
+def test_intrinsics_for_another_resolution_are_questioned_and_a_centred_principal_point_is_not():
+    """A depth camera's principal point lies near its image's centre: intrinsics stated for 640x480 on a
+    1280x720 image (the principal point a quarter of the width off) are questioned, with how far off; the
+    image's own, or ones off centre within the allowed share, are not."""
+    def K(cx, cy, f=600.0):
+        return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+
+    assert principal_point_note(K(639.5, 359.5), (720, 1280)) is None  # the exact centre (pixel centres whole)
+    assert principal_point_note(K(655.0, 350.0), (720, 1280)) is None  # a real camera's few pixels off
+    note = principal_point_note(K(319.5, 239.5), (720, 1280))
+    assert note is not None and "(319.5, 239.5)" in note and "25 % of the width" in note and "17 % of the height" in note
+    # the share is measured each way from the centre, on each axis apart
+    share = PRINCIPAL_POINT_SHARE
+    assert principal_point_note(K(639.5 + (share - 0.01) * 1280, 359.5), (720, 1280)) is None
+    assert principal_point_note(K(639.5, 359.5 - (share + 0.01) * 720), (720, 1280)) is not None
+    assert principal_point_note(K(639.5 - (share + 0.01) * 1280, 359.5), (720, 1280)) is not None

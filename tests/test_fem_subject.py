@@ -86,6 +86,11 @@ def test_bad_subject_input_is_one_line_and_writes_nothing(case, tmp_path):
     np.save(img, np.full((48, 64), 400.0))
     assert_clean_error(run("fem", d, "--prior", tmp / "prior.toml", "--depth", img, "--intrinsics", "500,500,640,360",
                            "--out", out), "64x48 pixels", "principal point")
+    # the same image read with its principal point a third of the image off centre: the refusal (no knee in
+    # it) says so too, as the likely cause where an image does show a knee
+    assert_clean_error(run("fem", d, "--prior", tmp / "prior.toml", "--depth", img, "--intrinsics", "500,500,10,8",
+                           "--out", out, "--quiet"),
+                       "34 % of the width and 32 % of the height from the centre of this 64x48 image")
     # the camera's pose in the CT frame given instead of the CT frame in the camera's: the registration finds
     # the knee without it, and the result says how far off it was
     inverted = tmp_path / "inverted.txt"

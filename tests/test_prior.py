@@ -181,6 +181,25 @@ def test_a_knee_beyond_the_prior_range_is_flagged(volunteer, scene):
     assert est.at_range_end and "end of the prior's assembly range" in est.warnings[0]
 
 
+def test_a_view_that_does_not_fit_the_skin_is_flagged(volunteer, scene):
+    """The same view read with the intrinsics of half its resolution (focal lengths and principal point
+    halved: every ray at the wrong angle, the leg's outline warped): the skin cannot fit it, and the estimate
+    says the result is not reliable; the view read with its own intrinsics fits within the threshold and says
+    nothing of it."""
+    from knee.models.prior import POOR_FIT_RMS_MM
+
+    ph, tf, pts = scene
+    est = estimate_flexion(SkinModel(volunteer, ph), pts)
+    assert est.rms < POOR_FIT_RMS_MM and not any("fits the points poorly" in w for w in est.warnings)
+    cam = default_camera()
+    skin = ph.skin(joint_to_pose(tf), joint_to_pose(volunteer.solve(math.radians(TRUE_DEG))[1]))
+    depth = DepthNoise().apply(render_depth(skin.vertices, skin.faces, cam), np.random.default_rng(1))
+    half = np.diag([0.5, 0.5, 1.0]) @ cam.K
+    warped = estimate_flexion(SkinModel(volunteer, ph), backproject(depth, half, cam.T_world_cam))
+    assert warped.rms > POOR_FIT_RMS_MM
+    assert any("fits the points poorly" in w and "not reliable" in w for w in warped.warnings)
+
+
 def test_a_view_without_the_shank_is_flagged(volunteer, scene):
     """A camera in front of a knee flexed to 71.3 deg sees the thigh and the knee but not the shank (which
     runs back and down, away from it): the estimate says that the flexion shows only through the knee's

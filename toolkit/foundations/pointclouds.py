@@ -51,6 +51,30 @@ def backproject(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray | None
     return p
 
 
+
+#: How far (a share of the image's width or height) an image's principal point may lie from its centre before
+#: :func:`principal_point_note` questions the intrinsics. A depth camera's principal point lies near its
+#: image's centre; intrinsics stated for another resolution of the same camera (640x480 ones for a 1280x720
+#: image) put it a quarter of the image or more off, and read the points at the wrong angles and scale.
+PRINCIPAL_POINT_SHARE = 0.15
+
+
+def principal_point_note(K, shape, share: float = PRINCIPAL_POINT_SHARE) -> str | None:
+    """A warning (None when there is nothing to say) where the intrinsics ``K`` (3, 3) put the principal
+    point further than ``share`` of the image's width or height (``shape`` (h, w), pixels) from the centre of
+    the image: as given for another resolution or another stream of the camera. Pixel centres at whole
+    coordinates: the image's centre is ((w - 1) / 2, (h - 1) / 2). The intrinsics are still used as given (a
+    cropped image may have its principal point off centre); a principal point outside the image is refused
+    where the image is read."""
+    h, w = shape[:2]
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    off = np.array([abs(cx - (w - 1) / 2) / w, abs(cy - (h - 1) / 2) / h])
+    if off.max() <= share:
+        return None
+    return (f"the intrinsics put the principal point at ({cx:g}, {cy:g}), {100 * off[0]:.0f} % of the width and "
+            f"{100 * off[1]:.0f} % of the height from the centre of this {w}x{h} image, where a depth camera's lies "
+            "near the centre: are they the depth stream's at this resolution?")
+
 #: A depth edge: a pixel whose depth differs from a seen neighbour's by more than this many pixel footprints
 #: (the pixel's lateral size at its depth, depth / focal length) (:func:`mixed_pixels`). A continuous
 #: surface steps this far between neighbouring pixels only where it is seen within 2.3 deg of edge-on

@@ -45,7 +45,8 @@ from knee.foundations.conventions import JOINT_COORDINATES, invert_poses, pose_t
 from knee.foundations.errors import KneeInputError  # noqa: E402
 from knee.foundations.files import staged_folder  # noqa: E402
 from knee.foundations.imaging import write_surface  # noqa: E402
-from knee.foundations.pointclouds import backproject, load_point_cloud, mixed_pixels, read_depth_image, sparse_points  # noqa: E402
+from knee.foundations.pointclouds import (backproject, load_point_cloud, mixed_pixels, principal_point_note,  # noqa: E402
+                                         read_depth_image, sparse_points)
 from knee.models.fem.depth import Camera, render_depth  # noqa: E402
 from knee.models.fem.methods import reconstruct_in_camera  # noqa: E402
 from knee.models.fem.scene import build_knee_model  # noqa: E402
@@ -171,7 +172,15 @@ def run(args) -> int:
     bar = None if args.quiet else ProgressBar()
     if bar:
         bar(0.1, f"registration and {method}")
-    recon, rough = reconstruct_in_camera(model, prior, points_run, T_init, method)
+    # intrinsics for another resolution or stream read the points at the wrong angles: said beside the result,
+    # or beside the refusal when the points then fit no knee
+    intrinsics_note = None if K is None else principal_point_note(K, depth.shape)
+    try:
+        recon, rough = reconstruct_in_camera(model, prior, points_run, T_init, method)
+    except KneeInputError as e:
+        if intrinsics_note is None:
+            raise
+        raise KneeInputError(f"{e}; and {intrinsics_note}") from None
     seconds = time.perf_counter() - t1
     lo, hi = (math.degrees(v) for v in prior.assembly_range)
     if recon.estimate is not None and recon.estimate.at_range_end:
@@ -188,7 +197,7 @@ def run(args) -> int:
     tf_pose = invert_poses(T_ct_model) @ invert_poses(poses_run["femur"]) @ poses_run["tibia"] @ frames["tibia"]
     tf = pose_to_joint(tf_pose)
     poses = {b: S @ T @ S for b, T in poses_run.items()}
-    notes = list(recon.notes)
+    notes = ([] if intrinsics_note is None else [intrinsics_note + " (used as given)"]) + list(recon.notes)
     initial_off = None
     if init_pose is not None:
         # how far the initial pose was from where the points put the femur (at the knee: the femur frame's
