@@ -554,3 +554,53 @@ def test_the_background_filter_judges_a_global_searchs_alternatives(case, monkey
 
     assert placed([right]) < 10.0
     assert placed([]) > 90.0
+
+
+def test_a_rough_match_the_skin_fits_poorly_is_placed_again_by_the_global_search(case, monkeypatch):
+    """Where the rough pose's basin holds a wrong match (here the placement from the guess turned over about
+    the thigh's axis, as a near-round leg can be matched), the flexion estimate's skin fits the points poorly:
+    the global search's placement is tried as well, and its run, whose estimate fits, is kept and said so
+    (flexion within 2 deg, the femur within a few degrees). From a right placement the global search does
+    not run."""
+    import knee
+    import knee.models.fem.methods as M
+    from knee.fitting.subject import load_subject
+    from knee.fitting.subject_anatomy import subject_anatomy
+    from knee.foundations.conventions import invert_poses
+    from knee.models.fem.scene import build_knee_model
+    from knee.models.prior import POOR_FIT_RMS_MM
+
+    pts = np.asarray(o3d.io.read_point_cloud(str(case["tmp"] / "cloud.ply")).points)
+    T_cam_model = case["T_cam_ct"] @ case["frames"]["femur"]
+    prior = knee.Mechanism(knee.load_model(case["tmp"] / "prior.toml"))
+    model = build_knee_model(subject_anatomy(load_subject(case["dir"]), prior.params), prior=prior)
+    guess = invert_poses(np.loadtxt(case["tmp"] / "pose.txt") @ case["frames"]["femur"])  # camera -> model
+    placed = M._placed
+    calls = []
+
+    def turned_over(skin, points, T_init, **kw):
+        calls.append(T_init is None)
+        kept, rough, dropped = placed(skin, points, T_init, **kw)
+        if T_init is not None:
+            flip = np.eye(4)
+            flip[:3, :3] = Rotation.from_rotvec(np.radians(180.0) * np.array([0.0, 1.0, 0.0])).as_matrix()
+            rough.T_model_world = flip @ rough.T_model_world  # turned over about the femur's (thigh's) axis
+        return kept, rough, dropped
+
+    def found():
+        recon, rough = M.reconstruct_in_camera(model, prior, pts, guess, "kinematics")
+        T = invert_poses(rough.T_model_world) @ recon.bone_pose("femur", model.femur.el.X)  # rest -> camera
+        turned = np.degrees(Rotation.from_matrix(T[:3, :3].T @ T_cam_model[:3, :3]).magnitude())
+        return turned, recon
+
+    monkeypatch.setattr(M, "_placed", lambda *a, **k: calls.append(a[2] is None) or placed(*a, **k))
+    turned, recon = found()
+    assert calls == [False] and recon.estimate.rms < POOR_FIT_RMS_MM
+    assert not any("global search's placement" in n for n in recon.notes)
+    calls.clear()
+    monkeypatch.setattr(M, "_placed", turned_over)
+    turned, recon = found()
+    assert calls == [False, True]
+    assert any("fits poorly" in n and "global search's placement fits it better" in n for n in recon.notes), recon.notes
+    assert recon.estimate.rms < POOR_FIT_RMS_MM
+    assert abs(recon.flexion_deg - math.degrees(case["tf"][0])) < 2.0 and turned < 3.0
