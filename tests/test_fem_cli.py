@@ -295,3 +295,14 @@ def test_posed_skin_follows_the_grid(fem_model):
         np.testing.assert_allclose(model.posed_skin_vertices(), model.skin_vertices @ R.T + t, atol=1e-8)
     finally:
         model.reset()
+
+
+def test_knee_fem_questions_intrinsics_that_do_not_fit_the_depth_image(tmp_path):
+    """The phantom's path reads a depth image as the subject's does: intrinsics whose principal point lies
+    outside the image are refused, one far from its centre questioned (and used)."""
+    img = tmp_path / "flat.npy"
+    np.save(img, np.full((48, 64), 400.0))
+    assert_clean_error(run("fem", "volunteer", "--depth", img, "--intrinsics", "500,500,100,8"), "64x48 pixels",
+                       "principal point at (100, 8), outside it")
+    p = run("fem", "volunteer", "--depth", img, "--intrinsics", "500,500,10,8", "--max-steps", "2")
+    assert "warning: the intrinsics put the principal point at (10, 8), 34 % of the width" in p.stdout, p.stdout

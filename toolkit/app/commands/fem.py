@@ -16,7 +16,7 @@ from knee.app.console import ProgressBar, check_max_steps, check_new, error, num
 from knee.app.experiments.cases import case_points, case_truth, run_standard_case
 from knee.app.views.fem import FemRecorder
 from knee.foundations.errors import EXIT_NUMERICAL, DivergenceError, KneeInputError
-from knee.foundations.pointclouds import load_depth_image
+from knee.foundations.pointclouds import backproject, principal_point_note, read_depth_image
 from knee.models.fem.depth import DepthNoise, camera_from_spec
 from knee.models.fem.methods import bone_phase_note
 from knee.models.fem.scene import FemSettings, build_association_model
@@ -46,9 +46,13 @@ def measured_points(args):
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
         if not (args.depth_scale > 0 and math.isfinite(args.depth_scale)):
             raise KneeInputError(f"--depth-scale must be a positive number, got {args.depth_scale}")
-        return fem_subject.checked_span(load_depth_image(args.depth, K, pose, args.depth_scale,
-                                                                 drop_mixed=not args.keep_flying), "--depth-scale",
-                                        args.depth_scale)
+        depth = read_depth_image(args.depth)
+        fem_subject.check_principal_point(K, depth.shape, args.depth)
+        note = principal_point_note(K, depth.shape)
+        if note:
+            print(f"warning: {note} (used as given)")
+        return fem_subject.checked_span(backproject(depth, K, pose, args.depth_scale, drop_mixed=not args.keep_flying),
+                                        "--depth-scale", args.depth_scale)
     if args.intrinsics or args.pose:
         raise KneeInputError("--intrinsics and --pose go with --depth or --cloud")
     return None

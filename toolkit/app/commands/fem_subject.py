@@ -102,6 +102,16 @@ def measured_cloud(args) -> tuple[np.ndarray, np.ndarray]:
     return checked_span(pts[~flying], "--cloud-scale", args.cloud_scale), pts[flying]
 
 
+def check_principal_point(K, shape, path) -> None:
+    """Refuse intrinsics ``K`` (3, 3) whose principal point lies outside the depth image ``path`` of
+    ``shape`` (h, w): they do not belong to it."""
+    h, w = shape[:2]
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    if not (0 <= cx <= w and 0 <= cy <= h):
+        raise KneeInputError(f"--depth {path} is {w}x{h} pixels but --intrinsics puts the principal point at "
+                             f"({cx:g}, {cy:g}), outside it: the intrinsics do not belong to this image")
+
+
 def _points(args):
     """(points (P, 3) camera frame, depth image or None, K or None, the flying pixels left out (F, 3): a
     depth image's on depth edges, a cloud's far from the others; none with ``--keep-flying``)."""
@@ -123,11 +133,8 @@ def _points(args):
     if not (math.isfinite(args.depth_scale) and args.depth_scale > 0):
         raise KneeInputError(f"--depth-scale must be a positive number, got {args.depth_scale}")
     depth = read_depth_image(args.depth)
-    h, w = depth.shape
-    if not (0 <= cx <= w and 0 <= cy <= h):
-        raise KneeInputError(f"--depth {args.depth} is {w}x{h} pixels but --intrinsics puts the principal point at "
-                             f"({cx:g}, {cy:g}), outside it: the intrinsics do not belong to this image")
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    check_principal_point(K, depth.shape, args.depth)
     depth = depth * args.depth_scale
     mixed = np.zeros(depth.shape, bool) if args.keep_flying else mixed_pixels(depth, K)
     pts = checked_span(backproject(np.where(mixed, 0.0, depth), K), "--depth-scale", args.depth_scale)
