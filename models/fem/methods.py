@@ -1197,14 +1197,12 @@ def reconstruct_in_camera(model: AssociationModel, prior: Mechanism, points_cam,
         if found is not None and found[1].inliers >= MIN_REGISTERED:
             again = prior_method(method, model, prior, transform_points(found[1].T_model_world, found[0]),
                                  max_steps=max_steps, skin=skin, **options)
+            # (each Reconstruction carries its own state: the first stays valid whichever ran last on the model)
             if again.estimate is not None and again.estimate.rms < fit:
                 again.notes.insert(0, f"the rough pose led to a match the skin fits poorly ({fit:.1f} mm RMS); the "
                                       f"global search's placement fits it better ({again.estimate.rms:.1f} mm) and "
                                       "is kept")
                 recon, (points_cam, rough, dropped, other) = again, found
-            else:
-                recon = prior_method(method, model, prior, transform_points(rough.T_model_world, points_cam),
-                                     max_steps=max_steps, skin=skin, **options)
     if dropped:
         recon.notes.insert(0, f"{dropped} of the {dropped + len(points_cam)} points were left out as background (a "
                               f"table, a wall, the other leg): on a dominant plane, or over {BACKGROUND_MM:g} mm from "

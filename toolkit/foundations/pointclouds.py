@@ -51,7 +51,6 @@ def backproject(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray | None
     return p
 
 
-
 #: How far (a share of the image's width or height) an image's principal point may lie from its centre before
 #: :func:`principal_point_note` questions the intrinsics. A depth camera's principal point lies near its
 #: image's centre; intrinsics stated for another resolution of the same camera (640x480 ones for a 1280x720
@@ -74,6 +73,7 @@ def principal_point_note(K, shape, share: float = PRINCIPAL_POINT_SHARE) -> str 
     return (f"the intrinsics put the principal point at ({cx:g}, {cy:g}), {100 * off[0]:.0f} % of the width and "
             f"{100 * off[1]:.0f} % of the height from the centre of this {w}x{h} image, where a depth camera's lies "
             "near the centre: are they the depth stream's at this resolution?")
+
 
 #: A depth edge: a pixel whose depth differs from a seen neighbour's by more than this many pixel footprints
 #: (the pixel's lateral size at its depth, depth / focal length) (:func:`mixed_pixels`). A continuous

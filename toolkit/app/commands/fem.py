@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 
 from knee.app.commands import fem_subject
-from knee.app.console import ProgressBar, check_max_steps, check_new, error, numbers, say
+from knee.app.console import ProgressBar, check_max_steps, check_new, error, say
 from knee.app.experiments.cases import case_points, case_truth, run_standard_case
 from knee.app.views.fem import FemRecorder
 from knee.foundations.errors import EXIT_NUMERICAL, DivergenceError, KneeInputError
-from knee.foundations.pointclouds import backproject, principal_point_note, read_depth_image
+from knee.foundations.pointclouds import backproject, principal_point_note
 from knee.models.fem.depth import DepthNoise, camera_from_spec
 from knee.models.fem.methods import bone_phase_note
 from knee.models.fem.scene import FemSettings, build_association_model
@@ -40,14 +40,7 @@ def measured_points(args):
         pts = fem_subject.measured_cloud(args)[0]
         return pts if pose is None else pts @ pose[:3, :3].T + pose[:3, 3]
     if args.depth:
-        if not args.intrinsics:
-            raise KneeInputError("--depth needs --intrinsics fx,fy,cx,cy (pixels)")
-        fx, fy, cx, cy = numbers(args.intrinsics, 4, "--intrinsics")
-        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
-        if not (args.depth_scale > 0 and math.isfinite(args.depth_scale)):
-            raise KneeInputError(f"--depth-scale must be a positive number, got {args.depth_scale}")
-        depth = read_depth_image(args.depth)
-        fem_subject.check_principal_point(K, depth.shape, args.depth)
+        depth, K = fem_subject.depth_input(args)
         note = principal_point_note(K, depth.shape)
         if note:
             print(f"warning: {note} (used as given)")

@@ -102,14 +102,24 @@ def measured_cloud(args) -> tuple[np.ndarray, np.ndarray]:
     return checked_span(pts[~flying], "--cloud-scale", args.cloud_scale), pts[flying]
 
 
-def check_principal_point(K, shape, path) -> None:
-    """Refuse intrinsics ``K`` (3, 3) whose principal point lies outside the depth image ``path`` of
-    ``shape`` (h, w): they do not belong to it."""
-    h, w = shape[:2]
-    cx, cy = float(K[0, 2]), float(K[1, 2])
+def depth_input(args) -> tuple[np.ndarray, np.ndarray]:
+    """``--depth``'s image (its own units) and ``--intrinsics``' K (3, 3), pixels, checked: the intrinsics
+    given, four numbers with positive focal lengths, a positive ``--depth-scale``, the principal point inside
+    the image (intrinsics that put it outside do not belong to it). One path for the subject's and the
+    phantom's ``knee fem``."""
+    if not args.intrinsics:
+        raise KneeInputError("--depth needs --intrinsics fx,fy,cx,cy (pixels)")
+    fx, fy, cx, cy = numbers(args.intrinsics, 4, "--intrinsics")
+    if not (fx > 0 and fy > 0):
+        raise KneeInputError(f"--intrinsics: the focal lengths must be positive, got {fx:g}, {fy:g}")
+    if not (math.isfinite(args.depth_scale) and args.depth_scale > 0):
+        raise KneeInputError(f"--depth-scale must be a positive number, got {args.depth_scale}")
+    depth = read_depth_image(args.depth)
+    h, w = depth.shape
     if not (0 <= cx <= w and 0 <= cy <= h):
-        raise KneeInputError(f"--depth {path} is {w}x{h} pixels but --intrinsics puts the principal point at "
+        raise KneeInputError(f"--depth {args.depth} is {w}x{h} pixels but --intrinsics puts the principal point at "
                              f"({cx:g}, {cy:g}), outside it: the intrinsics do not belong to this image")
+    return depth, np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
 def _points(args):
@@ -125,16 +135,7 @@ def _points(args):
             raise KneeInputError("--intrinsics goes with --depth, not --cloud")
         pts, flying = measured_cloud(args)
         return pts, None, None, flying
-    if not args.intrinsics:
-        raise KneeInputError("--depth needs --intrinsics fx,fy,cx,cy (pixels)")
-    fx, fy, cx, cy = numbers(args.intrinsics, 4, "--intrinsics")
-    if not (fx > 0 and fy > 0):
-        raise KneeInputError(f"--intrinsics: the focal lengths must be positive, got {fx:g}, {fy:g}")
-    if not (math.isfinite(args.depth_scale) and args.depth_scale > 0):
-        raise KneeInputError(f"--depth-scale must be a positive number, got {args.depth_scale}")
-    depth = read_depth_image(args.depth)
-    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    check_principal_point(K, depth.shape, args.depth)
+    depth, K = depth_input(args)
     depth = depth * args.depth_scale
     mixed = np.zeros(depth.shape, bool) if args.keep_flying else mixed_pixels(depth, K)
     pts = checked_span(backproject(np.where(mixed, 0.0, depth), K), "--depth-scale", args.depth_scale)
