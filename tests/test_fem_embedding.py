@@ -115,3 +115,27 @@ def test_mapped_bone_field_matches_embedding_then_elements(capsule_grid):
     # the cached transposed rotations follow the rotations when they are replaced
     field.el.R = np.broadcast_to(np.eye(3), field.el.R.shape)
     np.testing.assert_allclose(field.el.Rt, np.broadcast_to(np.eye(3), field.el.R.shape))
+
+
+def test_signed_distance_signs_agree_with_the_half_spaces_of_a_convex_hull():
+    """Inside and outside of a closed mesh as the convex hull's half-spaces say, for a million points at random
+    around it (those within 1e-3 mm of a face plane left out): one ray per point (open3d's default) miscounts
+    where it grazes an edge, and got one of these points wrong; the majority of three gets none."""
+    from knee.foundations.surfaces import SIGN_RAYS
+
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(300, 3))
+    hull = trimesh.convex.convex_hull(20.0 * v / np.linalg.norm(v, axis=1)[:, None])
+    rng.uniform(-22.0, 22.0, (1_000_000, 3))  # the first million drawn hold no point a single ray gets wrong
+    p = rng.uniform(-22.0, 22.0, (1_000_000, 3)).astype(np.float32)
+    offset = np.sum(hull.face_normals * hull.triangles[:, 0], axis=1)
+    # the largest distance beyond a face plane, in chunks (a million points by 600 faces at once is 5 GB)
+    beyond = np.concatenate([np.max(c.astype(float) @ hull.face_normals.T - offset, axis=1)
+                             for c in np.array_split(p, 20)])
+    inside, outside = beyond < -1e-3, beyond > 1e-3
+    q = SurfaceQuery.of(hull)
+    d = q.signed_distance(p)
+    assert SIGN_RAYS > 1 and SIGN_RAYS % 2 == 1
+    assert np.count_nonzero(inside & (d > 0)) + np.count_nonzero(outside & (d < 0)) == 0
+    occupied = q.inside(p)
+    assert np.count_nonzero(inside & ~occupied) + np.count_nonzero(outside & occupied) == 0

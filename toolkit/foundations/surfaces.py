@@ -11,8 +11,18 @@ import trimesh
 from knee.foundations.errors import KneeInputError
 
 
+#: Rays cast from each point to tell inside from outside, the majority deciding (open3d's ``nsamples``, odd).
+#: One ray, open3d's default, miscounts where it grazes an edge or a vertex: about one point in a million
+#: taken at random around a convex hull of 300 points gets the wrong sign (tested), and on the honest
+#: benchmark one bone vertex so flipped read the bones as overlapping by 5 mm where they were 3.5 mm apart,
+#: and slid the tibia 9 mm (a phantom view at 90 deg: its footprints 3.3 or 5.9 mm, run to run, as the
+#: FEM's last digits put that vertex). Three rays cost about 10 % more per signed distance.
+SIGN_RAYS = 3
+
+
 class SurfaceQuery:
-    """Repeated signed-distance / inside queries against one closed mesh (vertices (V, 3), faces (F, 3))."""
+    """Repeated signed-distance / inside queries against one closed mesh (vertices (V, 3), faces (F, 3)); the
+    sign by :data:`SIGN_RAYS` rays per point."""
 
     def __init__(self, vertices, faces):
         v = np.asarray(vertices, float)
@@ -28,12 +38,12 @@ class SurfaceQuery:
     def signed_distance(self, points) -> np.ndarray:
         """(P, 3) -> (P,) signed distances (negative inside)."""
         p = o3d.core.Tensor(np.asarray(points, np.float32).reshape(-1, 3))
-        return self.scene.compute_signed_distance(p).numpy().astype(float)
+        return self.scene.compute_signed_distance(p, nsamples=SIGN_RAYS).numpy().astype(float)
 
     def inside(self, points) -> np.ndarray:
-        """(P, 3) -> (P,) bool, by ray parity (robust for watertight meshes)."""
+        """(P, 3) -> (P,) bool, by ray parity (watertight meshes), the majority of :data:`SIGN_RAYS` rays."""
         p = o3d.core.Tensor(np.asarray(points, np.float32).reshape(-1, 3))
-        return self.scene.compute_occupancy(p).numpy() > 0.5
+        return self.scene.compute_occupancy(p, nsamples=SIGN_RAYS).numpy() > 0.5
 
     def closest_points(self, points) -> np.ndarray:
         """(P, 3) -> (P, 3) closest points on the surface."""
