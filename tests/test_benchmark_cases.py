@@ -247,6 +247,11 @@ def test_case_set_runs_and_measures_against_its_truth(small_case_set):
     assert r.footprints_mm < 12.0 and r.registration_inliers > 0.4
     # the run's CPU time is its own: more than nothing, and no more than its wall time on every core there is
     assert 0.0 < r.cpu_seconds <= r.wall_seconds * (os.cpu_count() or 1) + 0.05
+    # the estimate's fit is recorded: the camera's noise keeps it above zero, a view of this skin (no mismatch)
+    # keeps it under the poor-fit warning's threshold
+    from knee.models.prior import POOR_FIT_RMS_MM
+
+    assert 0.2 < r.estimate_rms_mm < POOR_FIT_RMS_MM
 
 
 def test_stage_errors_compose_each_stages_bones_in_the_cameras_frame(small_case_set):
@@ -366,6 +371,26 @@ def test_flexion_target_split_by_what_the_camera_saw():
     assert seen.split("(target")[1].startswith(": all): met") and unseen.endswith(": met")
 
 
+def test_estimate_fit_line_counts_the_views_fitted_poorly():
+    """The case set's report says how well the flexion estimate's posed skin fitted each view and names the
+    views over the poor-fit threshold, worst first; rows without the figure (a failed estimate, a table written
+    before it was recorded) are left out, and without any the line is left out."""
+    from knee.app.experiments.case_set import CaseRow
+    from knee.app.reports.case_set import estimate_fit
+    from knee.models.prior import POOR_FIT_RMS_MM
+
+    def row(case, rms):
+        return CaseRow("links", "paper", 40.0, case=case, estimate_rms_mm=rms)
+
+    rows = [row("a", 0.8), row("b", 1.0), row("c", 2.6), row("d", POOR_FIT_RMS_MM + 0.5), row("e", float("nan")),
+            row("f", POOR_FIT_RMS_MM + 7.0)]
+    (line,) = estimate_fit(rows)
+    assert f"median 2.60 mm RMS over 5 views, 2 within 2.5 mm; 2 over {POOR_FIT_RMS_MM:g} mm" in line
+    assert line.endswith(f"f {POOR_FIT_RMS_MM + 7.0:.1f} mm, d {POOR_FIT_RMS_MM + 0.5:.1f} mm")
+    assert estimate_fit(rows[:3])[0].endswith("0 over 3 mm (warned of a poor fit)")
+    assert estimate_fit([row("e", float("nan")), CaseRow("links", "paper", 40.0)]) == []
+
+
 def test_case_set_index_errors(tmp_path):
     from knee.app.experiments.case_set import read_case_set
     from knee.foundations.errors import KneeInputError
@@ -464,8 +489,10 @@ def test_compare_on_a_case_set_writes_its_report(small_case_set, tmp_path, capsy
     md = (out / "compare.md").read_text()
     assert "## Targets" in md and "(iv) kinematics" in md and (out / "compare.png").stat().st_size > 0
     rows = (out / "compare.csv").read_text().splitlines()
-    assert len(rows) == 5 and "mismatch_mm" in rows[0] and rows[0].endswith("cpu_seconds")
+    assert len(rows) == 5 and "mismatch_mm" in rows[0] and rows[0].endswith("cpu_seconds,estimate_rms_mm")
     assert "s, every thread's) (target <= 5 s)" in md  # the time target with the CPU time beside the wall time
+    # the input check: each (iii) run's estimate fit, the case set's own skin, under the poor-fit threshold
+    assert "the flexion estimate's fit to the points: median" in md and "0 over 3 mm (warned of a poor fit)" in md
     # the 1 mm view has its 0 mm twin: the 0-1 mm target says what a perfect model reaches there
     assert "at 1 mm, on the 1 views also rendered at 0 mm" in md and "(iii)" in md.split("views also")[1]
     # the recording: a valid file with the cloud, the truth's and each method's bones and the errors

@@ -211,7 +211,7 @@ def run_cases(args) -> int:
         except KneeInputError:
             floors = []
         write_csv(rows, tmp / "compare.csv", extra=("case", "anatomy", "family", "mismatch_mm", "registration_inliers",
-                                                            "shank_points_true", "cpu_seconds"))
+                                                            "shank_points_true", "cpu_seconds", "estimate_rms_mm"))
         (tmp / "compare.md").write_text(report.markdown(rows, methods, title, floors), encoding="utf-8")
         report.plot(rows, methods, tmp / "compare.png", title)
     for line in report.targets(rows, floors):

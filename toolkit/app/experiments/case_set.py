@@ -505,6 +505,10 @@ class CaseRow(CompareRow):
     #: the process's CPU time over the run (s; every thread's): on a shared machine, where other work takes
     #: the cores, the wall time grows and this does not
     cpu_seconds: float = float("nan")
+    #: how well the subject's skin, posed at the estimated flexion, fits the depth points (mm; the trimmed RMS
+    #: over the nearest 90 %, :attr:`knee.models.prior.FlexionEstimate.rms`): the check on the input that
+    #: warns over :data:`knee.models.prior.POOR_FIT_RMS_MM`; NaN where the method made no estimate
+    estimate_rms_mm: float = float("nan")
 
 
 #: The shank, for counting what the camera sees of it: the skin more than this many femur widths below the
@@ -560,7 +564,8 @@ def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T
     row = reconstruction_row(method, case["camera"], float(case["flexion_deg"]), recon, e, wall, CaseRow,
                              case=case["id"], anatomy=case["anatomy"], family=case["family"],
                              mismatch_mm=float(case["mismatch_mm"]), registration_inliers=rough.inliers,
-                             shank_points_true=seen_shank_points(anatomy, pts, T_cam_tibia), cpu_seconds=cpu)
+                             shank_points_true=seen_shank_points(anatomy, pts, T_cam_tibia), cpu_seconds=cpu,
+                             estimate_rms_mm=float("nan") if recon.estimate is None else float(recon.estimate.rms))
     staged = camera_stage_errors(anatomy, prior, recon, T_cam_world, T_cam_femur, T_cam_tibia) if stages else []
     if on_result is not None:
         estimate = {b: T_cam_world @ recon.rigid_pose(b) for b in ("femur", "tibia")}

@@ -23,7 +23,7 @@ import rerun as rr  # noqa: E402
 from knee.app.reports.compare import METHOD_COLOURS, compare_blueprint  # noqa: E402
 from knee.foundations import recording as R  # noqa: E402
 from knee.foundations.pointclouds import voxel_downsample  # noqa: E402
-from knee.models.prior import MIN_SEEN_SHANK, VOXEL_MM  # noqa: E402
+from knee.models.prior import MIN_SEEN_SHANK, POOR_FIT_RMS_MM, VOXEL_MM  # noqa: E402
 
 #: The paper's own figures (seed 000): mean footprint and epiphysis errors, femur / tibia (mm).
 PAPER_FOOTPRINTS_MM = (3.81, 3.89)
@@ -146,10 +146,26 @@ def targets(rows, floors=()) -> list[str]:
         lines.append(f"(iii) median time {w:.1f} s per case including the registration"
                      + (f" (CPU time {_median(cpu):.1f} s, every thread's)" if cpu else "")
                      + f" (target <= 5 s): {'met' if w <= 5 else 'NOT met'}")
+    lines += estimate_fit(ok)
     failed = [r for r in rows if r.failed]
     if failed:
         lines.append(f"{len(failed)} runs failed (listed in the table)")
     return lines
+
+
+def estimate_fit(rows) -> list[str]:
+    """How well the subject's skin, posed at the estimated flexion, fits each view's points (the rows'
+    ``estimate_rms_mm``; rows without it are left out): the median, the share within 2.5 mm, and the views over
+    :data:`knee.models.prior.POOR_FIT_RMS_MM`, which the run warns of. A line, or none where no row has it."""
+    fit = [r for r in rows if math.isfinite(getattr(r, "estimate_rms_mm", math.nan))]
+    if not fit:
+        return []
+    poor = sorted((r for r in fit if r.estimate_rms_mm > POOR_FIT_RMS_MM), key=lambda r: -r.estimate_rms_mm)
+    return [f"(iii) the flexion estimate's fit to the points: median {_median(r.estimate_rms_mm for r in fit):.2f} mm "
+            f"RMS over {len(fit)} views, {sum(r.estimate_rms_mm <= 2.5 for r in fit)} within 2.5 mm; "
+            f"{len(poor)} over {POOR_FIT_RMS_MM:g} mm (warned of a poor fit)"
+            + (": " + ", ".join(f"{getattr(r, 'case', '') or r.camera} {r.estimate_rms_mm:.1f} mm" for r in poor[:5])
+               + (" ..." if len(poor) > 5 else "") if poor else "")]
 
 
 #: What a run's notes say when the view cannot show the flexion (the flexion estimate's warnings, its fallback).

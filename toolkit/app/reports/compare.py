@@ -96,7 +96,7 @@ def write_csv(rows: list[CompareRow], path, extra=()) -> None:
 
 
 #: Columns a table written before they were added may lack: their rows take the field's default.
-LATER_COLUMNS = ("cpu_seconds",)
+LATER_COLUMNS = ("cpu_seconds", "estimate_rms_mm")
 
 
 def read_csv(path, row_type=CompareRow) -> list:

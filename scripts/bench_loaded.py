@@ -1,0 +1,154 @@
+"""Method (iii)'s time per case on a machine shared with other work: the same cases of a case set
+(``scripts/build_case_set.py``) run with 0, 1 or 2 busy processes (single-threaded loops) holding the cores
+beside them, and with the default or a set number of OpenMP threads (``OMP_NUM_THREADS``). Each setting runs
+in its own process (as a user's ``knee fem`` would), the settings alternated over ``--rounds`` so that a
+drift of the machine falls on all of them alike. Per setting: the median wall time per case, its CPU time
+(every thread's: what the case costs the machine, which the load does not change), the slowest case, each
+round's median, and the ratio of the median to the baseline measured in the same run (no load, default
+threads); and the largest change of any case's footprint error between settings (the answer should not
+depend on the threads).
+
+    .venv/bin/python scripts/bench_loaded.py CASE_SET [--cases 10] [--loads 0,1,2] [--threads default,1]
+        [--rounds 2] [--jsonl OUT.jsonl]
+
+The cases are ``--cases`` of the set's views at the paper's placement, evenly spaced over the set. About
+2-3 minutes per setting and round with 10 cases (12 runs with the defaults: 25-30 minutes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+
+#: The busy process: one core held by a loop that never sleeps.
+BUSY = "while True: pass"
+
+
+def main() -> int:
+    from knee.app.console import at_least
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("cases", help="a case set folder")
+    ap.add_argument("--cases", dest="count", type=at_least(1), default=10, help="how many views (default 10)")
+    ap.add_argument("--loads", default="0,1,2", help="busy processes beside the run, a list (default 0,1,2)")
+    ap.add_argument("--threads", default="default,1",
+                    help="OpenMP threads, a list of counts or 'default' (OMP_NUM_THREADS unset; default: default,1)")
+    ap.add_argument("--rounds", type=at_least(1), default=2, help="times every setting runs (default 2)")
+    ap.add_argument("--jsonl", default=None, help="a line per case and run: setting, round, wall, CPU, footprints")
+    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # internal: run these case ids, print JSON
+    args = ap.parse_args()
+    from knee.foundations.errors import KneeError, KneeInputError
+
+    try:
+        if args.worker is not None:
+            return worker(args.cases, args.worker.split(","))
+        loads = [int(v) for v in args.loads.split(",")]
+        threads = [v for v in args.threads.split(",")]
+        if any(n < 0 for n in loads) or any(t != "default" and (not t.isdigit() or int(t) < 1) for t in threads):
+            raise KneeInputError(f"--loads takes counts >= 0 and --threads counts >= 1 or 'default', got "
+                                 f"{args.loads!r} and {args.threads!r}")
+        return run(args, loads, threads)
+    except (KneeError, ValueError, RuntimeError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+def worker(folder: str, ids: list[str]) -> int:
+    """Method (iii) on the named cases, one JSON line each on stdout (the model and its skin built before the
+    first case's clock, as ``knee compare`` times it)."""
+    from pathlib import Path
+
+    from knee.app.experiments.case_set import iter_cases, run_case
+
+    folder = Path(folder)
+    for c, (anatomy, prior, T), _, _ in iter_cases(folder, select=lambda c: c["id"] in ids):
+        row, _ = run_case(folder, c, "links", anatomy, prior, T)
+        print(json.dumps({"case": c["id"], "wall": row.wall_seconds, "cpu": row.cpu_seconds,
+                          "footprints": row.footprints_mm, "failed": row.failed}), flush=True)
+    return 0
+
+
+def pick(folder, count: int) -> list[str]:
+    """``count`` views at the paper's placement, evenly spaced over the set (all of them when fewer)."""
+    from knee.app.experiments.case_set import read_case_set
+    from knee.foundations.errors import KneeInputError
+
+    views = [c["id"] for c in read_case_set(folder)["case"] if c["camera"] == "paper"]
+    if not views:
+        raise KneeInputError(f"{folder}: no views at the paper's placement to time")
+    n = min(count, len(views))
+    return [views[round(i * (len(views) - 1) / max(n - 1, 1))] for i in range(n)] if n > 1 else views[:1]
+
+
+def one_run(folder: str, ids: list[str], load: int, threads: str) -> list[dict]:
+    """The cases in a process of their own with ``load`` busy processes beside it; its JSON lines."""
+    env = dict(os.environ)
+    env.pop("OMP_NUM_THREADS", None)
+    if threads != "default":
+        env["OMP_NUM_THREADS"] = threads
+    busy = [subprocess.Popen([sys.executable, "-c", BUSY]) for _ in range(load)]
+    try:
+        out = subprocess.run([sys.executable, __file__, folder, "--worker", ",".join(ids)], env=env,
+                             capture_output=True, text=True)
+    finally:
+        for p in busy:
+            p.kill()
+            p.wait()
+    if out.returncode != 0:
+        raise RuntimeError(f"the timed run failed: {out.stderr.strip().splitlines()[-1:] or out.returncode}")
+    return [json.loads(line) for line in out.stdout.splitlines() if line.startswith("{")]
+
+
+def run(args, loads, threads) -> int:
+    from knee.app.console import new_files
+    from knee.foundations.files import staged_file
+
+    ids = pick(args.cases, args.count)
+    new_files(args.jsonl)
+    settings = [(n, t) for n in loads for t in threads]
+    results = {s: [] for s in settings}  # setting -> [(round, case line)]
+    t0 = time.perf_counter()
+    total = args.rounds * len(settings)
+    for rnd in range(args.rounds):
+        order = settings if rnd % 2 == 0 else settings[::-1]  # alternated: a drift falls on both ends alike
+        for k, s in enumerate(order):
+            done = rnd * len(settings) + k
+            print(f"[{done + 1}/{total}] round {rnd + 1}, {s[0]} busy, threads {s[1]} "
+                  f"({time.perf_counter() - t0:.0f} s so far)", file=sys.stderr, flush=True)
+            results[s] += [(rnd, line) for line in one_run(args.cases, ids, *s)]
+    base = settings[0] if (0, "default") not in results else (0, "default")
+    base_wall = statistics.median(line["wall"] for _, line in results[base])
+    print(f"{len(ids)} views of {args.cases} at the paper's placement, {args.rounds} rounds; baseline: "
+          f"{base[0]} busy, threads {base[1]}")
+    print("| busy processes | OpenMP threads | wall per case (s) | CPU (s) | slowest (s) | rounds' medians (s) | "
+          "ratio to the baseline |")
+    print("|---:|---|---:|---:|---:|---|---:|")
+    for s, rows in results.items():
+        wall = statistics.median(line["wall"] for _, line in rows)
+        cpu = statistics.median(line["cpu"] for _, line in rows)
+        per_round = " / ".join(f"{statistics.median(line['wall'] for r, line in rows if r == k):.2f}"
+                               for k in range(args.rounds))
+        print(f"| {s[0]} | {s[1]} | {wall:.2f} | {cpu:.2f} | {max(line['wall'] for _, line in rows):.2f} | "
+              f"{per_round} | {wall / base_wall:.2f} |")
+    by_case = {}
+    for rows in results.values():
+        for _, line in rows:
+            by_case.setdefault(line["case"], []).append(line["footprints"])
+    spread = max(max(v) - min(v) for v in by_case.values())
+    failed = sum(bool(line["failed"]) for rows in results.values() for _, line in rows)
+    print(f"largest change of a case's footprint error between runs: {spread:.4f} mm; failed runs: {failed}")
+    if args.jsonl:
+        with staged_file(args.jsonl) as tmp, open(tmp, "w", encoding="utf-8") as fh:
+            for s, rows in results.items():
+                for rnd, line in rows:
+                    fh.write(json.dumps({"busy": s[0], "threads": s[1], "round": rnd, **line}) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
