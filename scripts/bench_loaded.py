@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -109,6 +110,8 @@ def run(args, loads, threads) -> int:
     from knee.foundations.files import staged_file
 
     ids = pick(args.cases, args.count)
+    # a terminated run still stops its busy processes and its timed one (the `finally` and subprocess.run's own)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(1))
     new_files(args.jsonl)
     settings = [(n, t) for n in loads for t in threads]
     results = {s: [] for s in settings}  # setting -> [(round, case line)]
