@@ -13,7 +13,6 @@ shape, ``femur_from="knee"``, not placed again); the mechanism alone (iv) beside
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
 import statistics
 import sys
@@ -40,7 +39,7 @@ def run(args) -> int:
     from knee.app.console import new_files, timed_progress
     from knee.app.experiments.case_set import read_case_set, run_case_set
     from knee.foundations.errors import KneeInputError
-    from knee.foundations.files import staged_file
+    from knee.foundations.files import write_records
 
     index = read_case_set(args.cases)
     new_files(args.csv)
@@ -84,11 +83,7 @@ def run(args) -> int:
         ok = [r for r in rows["iv fem skin"] if not r.failed]
         print(f"(iv) fem skin: median {statistics.median(r.footprints_mm for r in ok):.2f} mm over {len(ok)} cases")
     if args.csv:
-        with staged_file(args.csv) as tmp, open(tmp, "w", newline="") as fh:
-            allrows = [dict(dataclasses.asdict(r), variant=k) for k, rs in rows.items() for r in rs]
-            w = csv.DictWriter(fh, fieldnames=list(allrows[0]))
-            w.writeheader()
-            w.writerows(allrows)
+        write_records(args.csv, (dict(dataclasses.asdict(r), variant=k) for k, rs in rows.items() for r in rs))
     return 0
 
 

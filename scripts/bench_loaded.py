@@ -9,7 +9,7 @@ threads); and the largest change of any case's footprint error between settings 
 depend on the threads).
 
     .venv/bin/python scripts/bench_loaded.py CASE_SET [--cases 10] [--loads 0,1,2] [--threads default,1]
-        [--rounds 2] [--jsonl OUT.jsonl]
+        [--rounds 2] [--csv OUT.csv]
 
 The cases are ``--cases`` of the set's views at the paper's placement, evenly spaced over the set. About
 2-3 minutes per setting and round with 10 cases (12 runs with the defaults: 25-30 minutes).
@@ -30,31 +30,39 @@ import time
 BUSY = "while True: pass"
 
 
+def listed(item):
+    """An ``argparse`` type: a comma-separated list, each entry read by ``item`` (an ``argparse`` type)."""
+    return lambda text: [item(v) for v in text.split(",")]
+
+
+def thread_count(text: str) -> str:
+    """``default`` (OMP_NUM_THREADS unset) or a count of at least 1."""
+    from knee.app.console import at_least
+
+    return text if text == "default" else str(at_least(1)(text))
+
+
 def main() -> int:
     from knee.app.console import at_least
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("cases", help="a case set folder")
     ap.add_argument("--cases", dest="count", type=at_least(1), default=10, help="how many views (default 10)")
-    ap.add_argument("--loads", default="0,1,2", help="busy processes beside the run, a list (default 0,1,2)")
-    ap.add_argument("--threads", default="default,1",
+    ap.add_argument("--loads", type=listed(at_least(0)), default="0,1,2",
+                    help="busy processes beside the run, a list (default 0,1,2)")
+    ap.add_argument("--threads", type=listed(thread_count), default="default,1",
                     help="OpenMP threads, a list of counts or 'default' (OMP_NUM_THREADS unset; default: default,1)")
     ap.add_argument("--rounds", type=at_least(1), default=2, help="times every setting runs (default 2)")
-    ap.add_argument("--jsonl", default=None, help="a line per case and run: setting, round, wall, CPU, footprints")
+    ap.add_argument("--csv", default=None, help="a row per case and run: setting, round, wall, CPU, footprints")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # internal: run these case ids, print JSON
     args = ap.parse_args()
-    from knee.foundations.errors import KneeError, KneeInputError
+    from knee.foundations.errors import KneeError
 
     try:
         if args.worker is not None:
             return worker(args.cases, args.worker.split(","))
-        loads = [int(v) for v in args.loads.split(",")]
-        threads = [v for v in args.threads.split(",")]
-        if any(n < 0 for n in loads) or any(t != "default" and (not t.isdigit() or int(t) < 1) for t in threads):
-            raise KneeInputError(f"--loads takes counts >= 0 and --threads counts >= 1 or 'default', got "
-                                 f"{args.loads!r} and {args.threads!r}")
-        return run(args, loads, threads)
-    except (KneeError, ValueError, RuntimeError) as e:
+        return run(args, args.loads, args.threads)
+    except (KneeError, RuntimeError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
 
@@ -83,7 +91,7 @@ def pick(folder, count: int) -> list[str]:
     if not views:
         raise KneeInputError(f"{folder}: no views at the paper's placement to time")
     n = min(count, len(views))
-    return [views[round(i * (len(views) - 1) / max(n - 1, 1))] for i in range(n)] if n > 1 else views[:1]
+    return [views[round(i * (len(views) - 1) / max(n - 1, 1))] for i in range(n)]
 
 
 def one_run(folder: str, ids: list[str], load: int, threads: str) -> list[dict]:
@@ -107,12 +115,12 @@ def one_run(folder: str, ids: list[str], load: int, threads: str) -> list[dict]:
 
 def run(args, loads, threads) -> int:
     from knee.app.console import new_files
-    from knee.foundations.files import staged_file
+    from knee.foundations.files import write_records
 
     ids = pick(args.cases, args.count)
+    new_files(args.csv)
     # a terminated run still stops its busy processes and its timed one (the `finally` and subprocess.run's own)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(1))
-    new_files(args.jsonl)
     settings = [(n, t) for n in loads for t in threads]
     results = {s: [] for s in settings}  # setting -> [(round, case line)]
     t0 = time.perf_counter()
@@ -145,11 +153,9 @@ def run(args, loads, threads) -> int:
     spread = max(max(v) - min(v) for v in by_case.values())
     failed = sum(bool(line["failed"]) for rows in results.values() for _, line in rows)
     print(f"largest change of a case's footprint error between runs: {spread:.4f} mm; failed runs: {failed}")
-    if args.jsonl:
-        with staged_file(args.jsonl) as tmp, open(tmp, "w", encoding="utf-8") as fh:
-            for s, rows in results.items():
-                for rnd, line in rows:
-                    fh.write(json.dumps({"busy": s[0], "threads": s[1], "round": rnd, **line}) + "\n")
+    if args.csv:
+        write_records(args.csv, ({"busy": s[0], "threads": s[1], "round": rnd, **line}
+                                 for s, rows in results.items() for rnd, line in rows))
     return 0
 
 

@@ -17,7 +17,6 @@ The CSV has a row per case and stage. About 5 s per case on the 2-core machine (
 from __future__ import annotations
 
 import argparse
-import csv
 import statistics
 import sys
 
@@ -39,7 +38,7 @@ def main() -> int:
     from knee.app.console import new_files, timed_progress
     from knee.app.experiments.case_set import diagnose_case_set, read_case_set
     from knee.foundations.errors import KneeError
-    from knee.foundations.files import staged_file
+    from knee.foundations.files import write_records
     from knee.models.fem.methods import STAGES
     from knee.models.prior import MIN_SEEN_SHANK  # the cases that see the shank, as knee compare counts them
 
@@ -71,11 +70,8 @@ def main() -> int:
                             **{f"femur_rotation_{a}_deg": v for a, v in zip("xyz", s.femur_rotation_deg)},
                             **{f"femur_translation_{a}_mm": v for a, v in zip("xyz", s.femur_translation_mm)},
                             **{f"relative_rotation_{a}_deg": v for a, v in zip("xyz", s.relative_rotation_deg)}})
-    if args.csv and records:
-        with staged_file(args.csv) as tmp, open(tmp, "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(records[0]))
-            w.writeheader()
-            w.writerows(records)
+    if args.csv:
+        write_records(args.csv, records)
     groups = {"0-1 mm": lambda r: r["mismatch_mm"] <= 1, "2 mm": lambda r: r["mismatch_mm"] > 1, "all": lambda r: True}
     print("| stage | " + " | ".join(f"footprints {g} (femur / tibia)" for g in groups)
           + " | flexion within 2 deg | femur rotation (deg) | femur at the knee (mm) | tibia rotation (deg) |")

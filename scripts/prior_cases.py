@@ -13,7 +13,6 @@ mechanism alone at the estimated angle (epiphysis and ACL/PCL footprints, per bo
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import statistics
 import sys
@@ -76,7 +75,7 @@ def main():
     args = ap.parse_args()
     from knee.app.console import flexion_list, new_files
     from knee.foundations.errors import KneeError
-    from knee.foundations.files import staged_file
+    from knee.foundations.files import write_records
 
     try:
         new_files(args.out)
@@ -110,10 +109,7 @@ def main():
           f"{statistics.median(r['tibia_footprints_mm'] for r in ok):.2f}); median wall time "
           f"{statistics.median(r['seconds'] for r in rows):.1f} s")
     if args.out:
-        with staged_file(args.out) as tmp, open(tmp, "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-            w.writeheader()
-            w.writerows(rows)
+        write_records(args.out, rows)
     return 0
 
 

@@ -119,14 +119,9 @@ def run(args, methods) -> int:
                   f"{sum(r.method == m for r in rows)} cases)")
     print(f"model build {t_build:.2f} s; peak memory {peak:.0f} MB")
     if args.out:
-        import csv
+        from knee.foundations.files import write_records
 
-        from knee.foundations.files import staged_file
-
-        with staged_file(args.out) as tmp, open(tmp, "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=list(dataclasses.asdict(rows[0])))
-            w.writeheader()
-            w.writerows(dataclasses.asdict(r) for r in rows)
+        write_records(args.out, (dataclasses.asdict(r) for r in rows))
     return 0
 
 

@@ -307,7 +307,8 @@ def test_diagnosis_ends_with_the_compared_bones(small_case_set):
 
 @pytest.mark.parametrize("script, selects_none", [("diagnose_case_set", "no case of"),
                                                   ("bench_case_set", "selects none of the"),
-                                                  ("skin_mismatch_floor", None)])
+                                                  ("skin_mismatch_floor", None), ("estimate_fit", None),
+                                                  ("bench_loaded", None)])
 def test_case_set_scripts_refuse_bad_input_in_one_line(script, selects_none, small_case_set, tmp_path, capsys, run_script):
     """The case-set scripts: a folder that is not a case set, a selection that matches no case, an existing
     --csv: one line each naming what is wrong, exit code 2, no CSV written and an existing one untouched."""
@@ -385,7 +386,9 @@ def test_estimate_fit_line_counts_the_views_fitted_poorly():
     rows = [row("a", 0.8), row("b", 1.0), row("c", 2.6), row("d", POOR_FIT_RMS_MM + 0.5), row("e", float("nan")),
             row("f", POOR_FIT_RMS_MM + 7.0)]
     (line,) = estimate_fit(rows)
-    assert f"median 2.60 mm RMS over 5 views, 2 within 2.5 mm; 2 over {POOR_FIT_RMS_MM:g} mm" in line
+    assert line.startswith("(iii) the flexion estimate's fit") and estimate_fit(rows, "set 0,")[0].startswith("set 0, ")
+    assert (f"median 2.60 mm RMS over 5 views (largest {POOR_FIT_RMS_MM + 7.0:.2f} mm), 2 within 2.5 mm; 2 over "
+            f"{POOR_FIT_RMS_MM:g} mm") in line
     assert line.endswith(f"f {POOR_FIT_RMS_MM + 7.0:.1f} mm, d {POOR_FIT_RMS_MM + 0.5:.1f} mm")
     assert estimate_fit(rows[:3])[0].endswith("0 over 3 mm (warned of a poor fit)")
     assert estimate_fit([row("e", float("nan")), CaseRow("links", "paper", 40.0)]) == []

@@ -262,7 +262,9 @@ def test_at_least_refuses_counts_and_numbers_out_of_range():
                                           ("bench_subsamples", ["--every", "0"]),
                                           ("bench_subsamples", ["--subsample", "rough,hip"]),
                                           ("bench_bone_slide", ["--pushes", "0"]),
-                                          ("bench_depth_edges", ["--repeats", "0"])])
+                                          ("bench_depth_edges", ["--repeats", "0"]),
+                                          ("bench_loaded", ["--cases", "0"]), ("bench_loaded", ["--rounds", "0"]),
+                                          ("bench_loaded", ["--loads", "-1"]), ("bench_loaded", ["--threads", "0"])])
 def test_scripts_refuse_counts_out_of_range_in_one_line(script, argv):
     """A benchmark script given a count or an angle out of range stops at its arguments, one line, before
     any work (a zero repeat count had ended in a median of nothing)."""

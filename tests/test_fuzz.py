@@ -449,6 +449,23 @@ def test_a_failure_while_writing_leaves_no_partial_file(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["table.csv"]
 
 
+def test_records_written_whole_with_their_first_keys_as_columns(tmp_path):
+    """The scripts' tables: every record under the first one's keys, read back as written; none, no file; a
+    record with a key the first lacks fails before the table replaces the one there."""
+    import csv
+
+    from knee.foundations.files import write_records
+
+    f = tmp_path / "rows.csv"
+    write_records(f, ({"case": f"c{i}", "mm": 0.5 * i} for i in range(3)))
+    assert list(csv.DictReader(f.open())) == [{"case": f"c{i}", "mm": str(0.5 * i)} for i in range(3)]
+    write_records(tmp_path / "none.csv", [])
+    assert not (tmp_path / "none.csv").exists()
+    with pytest.raises(ValueError):
+        write_records(f, [{"case": "a"}, {"case": "b", "extra": 1}])
+    assert f.read_text().splitlines()[0] == "case,mm" and sorted(p.name for p in tmp_path.iterdir()) == ["rows.csv"]
+
+
 def test_every_parameter_file_the_toolkit_writes_loads_back(tmp_path):
     from dataclasses import replace
 

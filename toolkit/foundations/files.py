@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import contextlib
+import csv
 import os
 import shutil
 import tempfile
@@ -109,6 +110,18 @@ def staged_file(path):
         with contextlib.suppress(OSError):
             tmp.unlink()
         raise
+
+
+def write_records(path, records) -> None:
+    """Dict records (the same keys each, the first's giving the columns) as a CSV table at ``path``, written
+    whole or not at all (:func:`staged_file`); nothing written when there are none."""
+    records = list(records)
+    if not records:
+        return
+    with staged_file(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(records[0]))
+        w.writeheader()
+        w.writerows(records)
 
 
 @contextlib.contextmanager

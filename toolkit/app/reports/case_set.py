@@ -153,16 +153,19 @@ def targets(rows, floors=()) -> list[str]:
     return lines
 
 
-def estimate_fit(rows) -> list[str]:
+def estimate_fit(rows, label: str = "(iii)") -> list[str]:
     """How well the subject's skin, posed at the estimated flexion, fits each view's points (the rows'
-    ``estimate_rms_mm``; rows without it are left out): the median, the share within 2.5 mm, and the views over
-    :data:`knee.models.prior.POOR_FIT_RMS_MM`, which the run warns of. A line, or none where no row has it."""
-    fit = [r for r in rows if math.isfinite(getattr(r, "estimate_rms_mm", math.nan))]
+    ``estimate_rms_mm``; rows without it are left out): the median and the largest, the count within 2.5 mm,
+    and the views over :data:`knee.models.prior.POOR_FIT_RMS_MM`, which the run warns of, worst first. A line
+    starting with ``label``, or none where no row has the figure."""
+    fit = sorted((r for r in rows if math.isfinite(getattr(r, "estimate_rms_mm", math.nan))),
+                 key=lambda r: -r.estimate_rms_mm)
     if not fit:
         return []
-    poor = sorted((r for r in fit if r.estimate_rms_mm > POOR_FIT_RMS_MM), key=lambda r: -r.estimate_rms_mm)
-    return [f"(iii) the flexion estimate's fit to the points: median {_median(r.estimate_rms_mm for r in fit):.2f} mm "
-            f"RMS over {len(fit)} views, {sum(r.estimate_rms_mm <= 2.5 for r in fit)} within 2.5 mm; "
+    poor = [r for r in fit if r.estimate_rms_mm > POOR_FIT_RMS_MM]
+    return [f"{label} the flexion estimate's fit to the points: median {_median(r.estimate_rms_mm for r in fit):.2f} mm "
+            f"RMS over {len(fit)} views (largest {fit[0].estimate_rms_mm:.2f} mm), "
+            f"{sum(r.estimate_rms_mm <= 2.5 for r in fit)} within 2.5 mm; "
             f"{len(poor)} over {POOR_FIT_RMS_MM:g} mm (warned of a poor fit)"
             + (": " + ", ".join(f"{getattr(r, 'case', '') or r.camera} {r.estimate_rms_mm:.1f} mm" for r in poor[:5])
                + (" ..." if len(poor) > 5 else "") if poor else "")]
