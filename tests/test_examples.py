@@ -43,7 +43,7 @@ def test_example_fit_synthetic_subject():
 def test_example_fem_with_prior():
     r = _example("fem_with_prior").main()
     assert r["points"] == 177664  # 177560 before the virtual camera's pixel centres moved half a pixel
-    assert abs(r["flexion_error_deg"]) < 1.5
+    assert abs(r["flexion_error_deg"]) < 2.0
     # the solver's refactorisations follow measured times: results agree to its tolerance, not bit for bit
     # (measured at the bones' rigid poses; the shank's points weighed as the patches a skin model errs over:
     # on this truth, the prior's own capsule skin, that costs 1.782 -> 2.216 mm, the epiphysis 3.645 ->
@@ -58,10 +58,13 @@ def test_example_fem_with_prior():
     # skin's springs 3.2 times a vertex's: 2.644 mm, 3.863 mm; the thigh registered with 2,000 of its seen
     # points instead of every third (its placement along the cylinder's axis moves with the points it gets;
     # the coarse scan's subsample alone changes nothing here): 2.779 mm, 3.946 mm, the correction 0.74 -> 0.88
-    # deg, the flexion 0.41 -> 0.57 deg off)
-    assert r["footprints_mm"] == pytest.approx(2.779, abs=0.05)
-    assert r["epiphysis_mm"] == pytest.approx(3.946, abs=0.05)
-    assert r["tibia_correction_deg"] == pytest.approx(0.88, abs=0.1)
+    # deg, the flexion 0.41 -> 0.57 deg off; the bones carrying the tissue by their own nodes instead of their
+    # grid cells prescribed, which the honest benchmark's tissue truth favours (BENCHMARKS.md) and this truth,
+    # the phantom's envelope of capsules carried rigidly by the bones, does not: 3.494 mm, 4.755 mm, the
+    # correction 1.66 deg, the flexion 1.86 deg over)
+    assert r["footprints_mm"] == pytest.approx(3.494, abs=0.05)
+    assert r["epiphysis_mm"] == pytest.approx(4.755, abs=0.05)
+    assert r["tibia_correction_deg"] == pytest.approx(1.66, abs=0.1)
 
 
 def readme_snippets() -> list[str]:

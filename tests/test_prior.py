@@ -684,7 +684,7 @@ def test_the_fem_posed_skin_is_the_fems_skin(volunteer):
 def test_the_shank_as_the_fem_posed_it_is_carried_by_the_tibia_and_corrects_it(volunteer):
     """``fem_posed_shank``: at the scan (nothing moved) its shank is the scanned one in the tibia's frame. With
     the tibia moved to 60 deg (and a known correction) by the prior's initialisation, its shank in the tibia's
-    frame is the scanned one far below the knee (the tibia's cells carry the tissue there rigidly) and
+    frame is the scanned one far below the knee (the tibia carries the tissue there, within 0.5 mm) and
     departs from it near the knee (the tissue follows the thigh); a frame left uninverted would put it tens of
     mm off everywhere. Points on that posed shank, given to the tibia's correction from the prior's path with
     the points weighed as exact, bring the tibia back to the pose the model was moved to; the scanned shank
@@ -719,7 +719,7 @@ def test_the_shank_as_the_fem_posed_it_is_carried_by_the_tibia_and_corrects_it(v
     local = transform_points(invert_poses(anatomy.tibia_pose), p)  # the scanned shank in the tibia's frame
     far = p[:, 1] < anatomy.joint_y - 1.5 * anatomy.width
     d = np.abs(q.signed_distance(local))
-    assert far.sum() > 100 and np.percentile(d[far], 90) < 0.3
+    assert far.sum() > 100 and np.percentile(d[far], 90) < 0.5
     assert d[~far].max() > 1.0
     # the points: on the posed shank's skin as the model has it (its vertices carried by the grid), not the
     # solid's cut across the leg; the part near the knee included: a shank far below it is a near-cylinder,

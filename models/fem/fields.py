@@ -124,6 +124,27 @@ class DisplacementTethers:
         return self.K
 
 
+class MappedAnchors:
+    """Zero-length springs from points embedded in the grid (``x_points = J x``, a bone's nodes) to
+    target positions: ``f = -k J^T (J x - targets)``, stiffness ``k J^T J``. ``targets`` (P, 3) may be
+    changed between steps."""
+
+    def __init__(self, mapping: TrilinearMapping, targets, k: float):
+        self.map = mapping
+        self.k = float(k)
+        self.targets = np.array(targets, float)
+        self.K = (self.k * (mapping.J3.T @ mapping.J3)).tocsr()
+
+    def forces(self, x):
+        return -self.k * self.map.apply_transpose(self.map.apply(x) - self.targets)
+
+    def apply(self, p):
+        return self.k * self.map.apply_transpose(self.map.apply(p))
+
+    def matrix(self):
+        return self.K
+
+
 class MappedSprings:
     """Linear springs between pairs of embedded points (e.g. collateral ligaments).
 

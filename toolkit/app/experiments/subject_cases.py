@@ -61,7 +61,9 @@ def posed_skin(anatomy: KneeAnatomy, prior: Mechanism, T_tibia, increments: int 
     poses[:, :3, :3] = (rot[0] * Rotation.from_rotvec(f[:, None] * rel[None])).as_matrix()
     poses[:, :3, 3] = (1 - f)[:, None] * T0[:3, 3] + f[:, None] * np.asarray(T_tibia)[:3, 3]
     with quasi_static(model.solver):
-        move_tibia(model, poses, rebase=False)
+        # the bones' cells prescribed, not the methods' default (their own nodes): a stand-in truth made by
+        # the model itself should not also share the methods' way of posing it
+        move_tibia(model, poses, rebase=False, carry="cells")
     return model.posed_skin_vertices(), model.skin_faces
 
 
