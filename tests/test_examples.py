@@ -61,9 +61,10 @@ def test_example_fem_with_prior():
     # deg, the flexion 0.41 -> 0.57 deg off; the bones carrying the tissue by their own nodes instead of their
     # grid cells prescribed, which the honest benchmark's tissue truth favours (BENCHMARKS.md) and this truth,
     # the phantom's envelope of capsules carried rigidly by the bones, does not: 3.494 mm, 4.755 mm, the
-    # correction 1.66 deg, the flexion 1.86 deg over)
-    assert r["footprints_mm"] == pytest.approx(3.494, abs=0.05)
-    assert r["epiphysis_mm"] == pytest.approx(4.755, abs=0.05)
+    # correction 1.66 deg, the flexion 1.86 deg over; the tibia's small moves without a settling step: 3.524
+    # mm, 4.761 mm, the flexion 1.87 deg over)
+    assert r["footprints_mm"] == pytest.approx(3.524, abs=0.05)
+    assert r["epiphysis_mm"] == pytest.approx(4.761, abs=0.05)
     assert r["tibia_correction_deg"] == pytest.approx(1.66, abs=0.1)
 
 
