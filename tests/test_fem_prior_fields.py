@@ -248,7 +248,7 @@ def test_a_small_move_of_the_tibia_reaches_its_equilibrium_in_one_step(volunteer
     it, which is why :data:`SMALL_MOVE_SETTLE` takes none (the footprints move by hundredths of a mm)."""
     import math
 
-    from knee.foundations.conventions import transform_points
+    from knee.foundations.conventions import invert_poses, transform_points
     from knee.models.fem.methods import SMALL_MOVE_SETTLE, initialise_from_prior, move_tibia, quasi_static, tibia_path
     from knee.models.prior import small_pose
 
@@ -264,7 +264,7 @@ def test_a_small_move_of_the_tibia_reaches_its_equilibrium_in_one_step(volunteer
             X = model.grid.X
             start = model.posed_skin_vertices()
             move_tibia(model, T[None], settle=settle)
-        target = transform_points(T @ np.linalg.inv(model.tibia_pose), model.tibia.map.apply(X))
+        target = transform_points(T @ invert_poses(model.tibia_pose), model.tibia.map.apply(X))
         off = np.linalg.norm(model.tibia.map.apply(model.solver.x) - target, axis=1)
         assert np.median(off) < 0.02
         out.append(model.posed_skin_vertices())
@@ -441,15 +441,13 @@ def test_grid_nodes_tied_to_a_bone_only_weakly_are_held_at_the_reference(carry):
     import math
 
     from knee.app.demo import demo_anatomy, demo_case
-    from knee.models.fem.methods import move_tibia, quasi_static, tibia_path
+    from knee.models.fem.methods import initialise_from_prior, quasi_static
     from knee.models.fem.scene import build_knee_model
 
     _, prior = demo_case(3, 2.0)
     model = build_knee_model(demo_anatomy(prior), prior=prior)
-    a_scan = model.anatomy.scan_tf[0]
-    poses = tibia_path(prior, model, a_scan + (math.radians(90.0) - a_scan) * np.arange(1, 5) / 4)
     with quasi_static(model.solver):
-        move_tibia(model, poses, carry=carry)  # the prior's initialisation (initialise_from_prior)
+        initialise_from_prior(model, prior, math.radians(90.0), carry=carry)
     s, X = model.solver, model.grid.X
     soft = np.zeros(len(X), bool)
     soft[model.grid.cells[model.soft.el.alive].ravel()] = True

@@ -766,22 +766,6 @@ def fem_posed_shank(model: AssociationModel, skin: SkinModel, alpha: float, T_ti
     return ShankReplaced(skin, alpha, SurfaceQuery(local, np.asarray(rest.faces)))
 
 
-def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: float, increments: int = 4,
-                          settle: int = 1, correction_xi: np.ndarray | None = None) -> int:
-    """Move the tibia along the prior's path (:func:`tibia_path`) from the scanned pose to ``alpha`` (rad)
-    (:func:`move_tibia`: the femur held at rest, the bones carrying the tissue by their own nodes), solving the grid's static equilibrium at
-    each increment (quasi-static steps, see :class:`quasi_static`), and make that configuration the
-    model's stress-free reference (:func:`move_tibia`); returns the steps taken. ``correction_xi`` (6,): a
-    pose correction of the tibia in its own frame at ``alpha``, rotation vector (rad) and translation (mm)
-    (:class:`knee.models.prior.TibiaCorrection`), blended in along the increments."""
-    a_scan = model.anatomy.scan_tf[0]
-    fractions = np.arange(1, increments + 1) / increments
-    poses = tibia_path(prior, model, a_scan + (alpha - a_scan) * fractions)
-    if correction_xi is not None:
-        poses = poses @ np.stack([small_pose(f * np.asarray(correction_xi, float)) for f in fractions])
-    return move_tibia(model, poses, settle)
-
-
 #: How :func:`move_tibia` moves the bones through the tissue. ``"nodes"`` (the default): each bone's own
 #: tetrahedra's nodes are drawn to where the bone goes by stiff zero-length springs (:data:`BONE_ANCHOR_K`),
 #: and every grid node finds its equilibrium with them, as a bone moves only the tissue bonded to its
@@ -790,15 +774,15 @@ def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: floa
 #: conditions), which carries up to a cell of tissue around the bone rigidly (20-30 mm on the knees
 #: measured, a third of the femoral width), so that a flexed knee's tissue cannot sway over the bone.
 #: Measured on the honest benchmark's five seeds (300 cases; BENCHMARKS.md): (iii) 2.37 -> 2.28 mm at
-#: 0-1 mm skin mismatch, 4.42 -> 4.03 mm at 2 mm, the flexion within 2 deg in 217 -> 238 of 293 views;
-#: the Visible Human posed by the mechanism 2.81 -> 2.98 mm.
+#: 0-1 mm skin mismatch, 4.42 -> 4.03 mm at 2 mm, the flexion within 2 deg in 217 -> 237 of 293 views;
+#: the Visible Human posed by the mechanism 2.81 -> 2.95 mm.
 BONE_CARRIES = ("nodes", "cells")
 BONE_CARRY = "nodes"
 
 #: N/mm per bone node: the stiffness of the springs that draw a bone's nodes to their targets in
 #: :func:`move_tibia` (``"nodes"``). Ten times the links' and the collaterals' 1000 N/mm: on the Visible
 #: Human flexed to 90 deg, 1000 N/mm left the tibia's nodes 1.1 mm from their targets (median), the tissue
-#: crushed behind the knee pushing back; 10^4 leaves 0.04 mm, at the same run time.
+#: crushed behind the knee pushing back; 10^4 leaves 0.04 mm, and costs no more time than 1000 N/mm.
 BONE_ANCHOR_K = 1.0e4
 
 
@@ -811,6 +795,23 @@ BONE_ANCHOR_K = 1.0e4
 SMALL_MOVE_SETTLE = 0
 
 
+def initialise_from_prior(model: AssociationModel, prior: Mechanism, alpha: float, increments: int = 4,
+                          settle: int = 1, correction_xi: np.ndarray | None = None, carry: str = BONE_CARRY) -> int:
+    """Move the tibia along the prior's path (:func:`tibia_path`) from the scanned pose to ``alpha`` (rad)
+    (:func:`move_tibia`: the femur held at rest, the bones carrying the tissue by their own nodes), solving the grid's static equilibrium at
+    each increment (quasi-static steps, see :class:`quasi_static`), and make that configuration the
+    model's stress-free reference (:func:`move_tibia`); returns the steps taken. ``correction_xi`` (6,): a
+    pose correction of the tibia in its own frame at ``alpha``, rotation vector (rad) and translation (mm)
+    (:class:`knee.models.prior.TibiaCorrection`), blended in along the increments. ``carry``: how the bones
+    carry the tissue (:data:`BONE_CARRIES`)."""
+    a_scan = model.anatomy.scan_tf[0]
+    fractions = np.arange(1, increments + 1) / increments
+    poses = tibia_path(prior, model, a_scan + (alpha - a_scan) * fractions)
+    if correction_xi is not None:
+        poses = poses @ np.stack([small_pose(f * np.asarray(correction_xi, float)) for f in fractions])
+    return move_tibia(model, poses, settle, carry=carry)
+
+
 def move_tibia(model: AssociationModel, poses, settle: int = 1, rebase: bool = True, carry: str = BONE_CARRY) -> int:
     """Move the tibia through ``poses`` (n, 4, 4): the tibia's frame in the femur frame at each increment,
     the femur held at rest, the bones carried as ``carry`` says (:data:`BONE_CARRY`: by their own nodes,
@@ -821,23 +822,22 @@ def move_tibia(model: AssociationModel, poses, settle: int = 1, rebase: bool = T
     s = model.solver
     X = model.grid.X
     moves = np.asarray(poses, float) @ invert_poses(model.tibia_pose)
-    steps = 0
     # the contact pairs the tibia's motion along the increments can bring, in the pattern from the start
     # (one symbolic analysis instead of one per increment that brings new pairs)
     s.reserve_pattern(model.contact.pattern_reserve_for_motion(np.concatenate([np.eye(4)[None], moves])))
+    schedule = list(moves) + [moves[-1]] * settle
     if carry == "nodes":
         Xf, Xt = model.femur.map.apply(X), model.tibia.map.apply(X)  # the bones' nodes at the scan
         anchors = [MappedAnchors(model.femur.map, Xf, BONE_ANCHOR_K), MappedAnchors(model.tibia.map, Xt, BONE_ANCHOR_K)]
         s.fields.extend(anchors)
-        s.invalidate()
         try:
-            # quasi-static steps whatever the caller's: a damped step goes only part of the way to its
-            # equilibrium, which prescribed nodes reach regardless but springs do not
+            # quasi-static steps whatever the caller's (entering refactorises with the anchors): a damped
+            # step goes only part of the way to its equilibrium, which prescribed nodes reach regardless but
+            # springs do not
             with quasi_static(s):
-                for T in list(moves) + [moves[-1]] * settle:
+                for T in schedule:
                     anchors[1].targets = transform_points(T, Xt)
                     s.step()
-                    steps += 1
         finally:
             for a in anchors:
                 s.fields.remove(a)
@@ -846,17 +846,16 @@ def move_tibia(model: AssociationModel, poses, settle: int = 1, rebase: bool = T
         mf, mt = bone_cell_masks(model.grid, model.femur, model.tibia)
         mask = mf | mt
         target = X.copy()
-        for T in list(moves) + [moves[-1]] * settle:
+        for T in schedule:
             target[mt] = transform_points(T, X[mt])
             s.step(prescribed=(mask, target))
-            steps += 1
     s.v[:] = 0.0
     if not rebase:
         s.set_prescribed(None)
         s.invalidate()
-        return steps
+        return len(schedule)
     make_reference(model)
-    return steps
+    return len(schedule)
 
 
 def make_reference(model: AssociationModel) -> None:
