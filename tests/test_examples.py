@@ -43,7 +43,10 @@ def test_example_fit_synthetic_subject():
 def test_example_fem_with_prior():
     r = _example("fem_with_prior").main()
     assert r["points"] == 177664  # 177560 before the virtual camera's pixel centres moved half a pixel
-    assert abs(r["flexion_error_deg"]) < 2.0
+    # within 3 deg (2.62 over): this truth, the phantom's envelope of rigid capsules, is one no tissue makes;
+    # the posed-skin fit's sagittal tilt, free since the bones carry the tissue by their own nodes, follows
+    # its knee's sphere (the honest benchmark's tissue truth is the measure: BENCHMARKS.md)
+    assert abs(r["flexion_error_deg"]) < 3.0
     # the solver's refactorisations follow measured times: results agree to its tolerance, not bit for bit
     # (measured at the bones' rigid poses; the shank's points weighed as the patches a skin model errs over:
     # on this truth, the prior's own capsule skin, that costs 1.782 -> 2.216 mm, the epiphysis 3.645 ->
@@ -62,10 +65,12 @@ def test_example_fem_with_prior():
     # grid cells prescribed, which the honest benchmark's tissue truth favours (BENCHMARKS.md) and this truth,
     # the phantom's envelope of capsules carried rigidly by the bones, does not: 3.494 mm, 4.755 mm, the
     # correction 1.66 deg, the flexion 1.86 deg over; the tibia's small moves without a settling step: 3.524
-    # mm, 4.761 mm, the flexion 1.87 deg over)
-    assert r["footprints_mm"] == pytest.approx(3.524, abs=0.05)
-    assert r["epiphysis_mm"] == pytest.approx(4.761, abs=0.05)
-    assert r["tibia_correction_deg"] == pytest.approx(1.66, abs=0.1)
+    # mm, 4.761 mm, the flexion 1.87 deg over; the posed-skin fit's sagittal tilt free, which the honest
+    # benchmark's tissue truth favours on the Visible Human and this truth does not: 4.466 mm, 5.543 mm, the
+    # correction 2.43 deg, the flexion 2.62 deg over)
+    assert r["footprints_mm"] == pytest.approx(4.466, abs=0.05)
+    assert r["epiphysis_mm"] == pytest.approx(5.543, abs=0.05)
+    assert r["tibia_correction_deg"] == pytest.approx(2.43, abs=0.1)
 
 
 def readme_snippets() -> list[str]:
