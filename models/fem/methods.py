@@ -435,9 +435,9 @@ POSED_SKIN_BELOW_WIDTHS = 0.0
 
 
 #: The rotations (about the femur frame's x, y, z) :func:`register_to_posed_skin` may change; the others are
-#: held at the thigh's in its fit. None held: the sagittal tilt (about the medio-lateral axis z), which the
-#: thigh's near-cylinder had been left to fix while the bones' cells were prescribed, is the posed skin's too
-#: since the bones carry the tissue by their own nodes (:func:`register_to_posed_skin`).
+#: held at the thigh's in its fit. None is held. The sagittal tilt (about the medio-lateral axis z) was left
+#: to the thigh's near-cylinder while the bones' cells were prescribed; since the bones carry the tissue by
+#: their own nodes the posed skin fixes it better (:func:`register_to_posed_skin`).
 POSED_SKIN_ROTATIONS = (True, True, True)
 
 
@@ -467,9 +467,9 @@ def register_to_posed_skin(model: AssociationModel, points, reaches=POSED_SKIN_R
     bones carrying the tissue by their own nodes the posed skin's front sways over the femur as a flexed
     leg's does, and the thigh's registration is the worse guide to the tilt (the truth's thigh tissue turns
     over the femur as the knee flexes, which a rigid fit of the thigh reads as a tilt). Measured on the
-    honest benchmark's five seeds (300 cases), held -> free: (iii) 2.28 -> 2.21 mm at 0-1 mm, 4.03 -> 4.02 mm
-    at 2 mm, 2.69 -> 2.45 mm over all; the Visible Human 2.98 -> 2.42 mm at 0-1 mm, the phantom's capsule
-    leg 1.97 -> 2.13; the flexion within 2 deg 237 -> 238 of 290 views; lenhart2015 seed 0 1.71 -> 1.68 mm
+    honest benchmark's five seeds (300 cases), held -> free: (iii) 2.28 -> 2.21 mm at 0-1 mm, 4.03 -> 4.04 mm
+    at 2 mm, 2.69 -> 2.45 mm over all; the Visible Human 2.98 -> 2.43 mm at 0-1 mm, the phantom's capsule
+    leg 1.97 -> 2.13; the flexion within 2 deg 237 -> 239 of 293 views; lenhart2015 seed 0 1.71 -> 1.68 mm
     (BENCHMARKS.md)."""
     mesh = trimesh.Trimesh(model.posed_skin_vertices(), model.skin_faces, process=False)
     samples, face = sample_surface(mesh, n_samples, seed=0)
