@@ -183,11 +183,13 @@ def test_demo(tmp_path):
         assert (tmp_path / "demo" / f).is_file(), f
     rows = {ln.split()[0]: ln for ln in p.stdout.splitlines() if ln.startswith("(")}
     assert set(rows) == {"(i)", "(iii)", "(iv)"}
-    # the prior-constrained FEM ends near the true 60 deg; its footprint error is printed in mm
+    # the prior-constrained FEM ends near the true 60 deg (measured 59.2); its footprint error is printed in
+    # mm. On the truth's skin made by the tetrahedral tissue, it beats the mechanism alone (measured 2.48
+    # against 5.05 mm), which beats the paper's method (9.72 mm, ending near extension)
     flex = float(rows["(iii)"].split("°")[0].split()[-1])
-    assert abs(flex - 60.0) < 6.0
+    assert abs(flex - 60.0) < 2.0
     fp = {k: float(v.split("°")[1].split()[0]) for k, v in rows.items()}
-    assert fp["(iii)"] < fp["(i)"]
+    assert fp["(iii)"] < fp["(iv)"] < fp["(i)"]
     p2 = run("demo", "--out", tmp_path / "demo", "--kinematics-only")  # a second run does not touch the first
     assert p2.returncode == 0 and (tmp_path / "demo-2" / "volunteer-sweep.rrd").is_file()
     assert not (tmp_path / "demo-2" / "compare.md").exists()

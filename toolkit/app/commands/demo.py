@@ -93,8 +93,8 @@ def _sweep_and_report(args, out_dir: Path, shown: Path, fem) -> None:
         return
     out = fem.result()
     labels = importlib.import_module("knee.app.reports.compare").METHOD_LABELS
-    print(f"\nFEM at {args.flexion:g} deg flexion (truth: volunteer; prior: volunteer with TF endpoints moved 1-2 mm; "
-          f"oblique camera, depth noise):")
+    print(f"\nFEM at {args.flexion:g} deg flexion (truth: volunteer, its skin made by a tetrahedral "
+          f"tissue model; prior: volunteer with TF endpoints moved 1-2 mm; oblique camera, depth noise):")
     print(f"{'method':44s} {'flexion':>8s} {'footprints':>11s} {'epiphysis':>10s} {'steps':>6s} {'wall (s)':>9s}")
     for r in out.rows:
         print(f"{labels[r.method]:44s} {r.flexion_estimated_deg:7.1f}° {r.footprints_mm:8.2f} mm "

@@ -37,6 +37,7 @@ from knee.models.fem.methods import (
     prior_method,
 )
 from knee.models.fem.scene import AssociationModel, FemSettings, build_association_model
+from knee.models.fem.tissue import TetTissue
 from knee.models.mechanism.solver import Mechanism
 from knee.models.phantom import Phantom, build_phantom
 from knee.models.prior import TibiaCorrection
@@ -69,6 +70,19 @@ def case_points(truth: Mechanism, flexion_deg: float, camera: Camera, noise: Dep
     coordinates (6,)."""
     depth, tf = case_depth(truth, flexion_deg, camera, noise, seed, settings)
     return backproject(depth, camera.K, camera.T_world_cam), tf
+
+
+def tissue_case_points(tissue: TetTissue, truth_tf, camera: Camera, noise: DepthNoise | None,
+                       seed: int = 0) -> np.ndarray:
+    """The depth points (P, 3) (mm, world frame: the tissue's femur frame) a virtual camera sees of a truth
+    skin made independently of the association model: the tetrahedral tissue around the knee's bones (the
+    honest benchmark's truth, :class:`knee.models.fem.tissue.TetTissue`) with its femur held and its tibia
+    moved to the TF joint coordinates ``truth_tf`` (6,) (with noise drawn from ``seed``)."""
+    skin = tissue.pose(joint_to_pose(np.asarray(truth_tf, float))).skin(tissue)
+    depth = render_depth(skin.vertices, skin.faces, camera)
+    if noise is not None:
+        depth = noise.apply(depth, np.random.default_rng(seed))
+    return backproject(depth, camera.K, camera.T_world_cam)
 
 
 def model_targets(model: AssociationModel, mech: Mechanism) -> TargetPoints:
