@@ -12,14 +12,16 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from knee.app.console import out_dir, say
-from knee.app.experiments.cases import case_depth
+from knee.app.experiments.cases import tissue_case_depth
 from knee.fitting.pipeline import anatomical_frames
 from knee.fitting.subject import load_subject
+from knee.fitting.subject_anatomy import subject_anatomy
 from knee.fitting.synthetic import MAX_FRAMES, MIN_FRAMES, make_subject
 from knee.foundations.conventions import JOINT_COORDINATES, invert_poses, joint_to_pose
 from knee.foundations.errors import KneeInputError
 from knee.foundations.files import staged_folder
 from knee.models.fem.depth import DepthNoise, default_camera
+from knee.models.fem.tissue import TetTissue
 from knee.models.mechanism import Mechanism
 from knee.models.mechanism.params import load_model
 
@@ -54,9 +56,11 @@ def run(args) -> int:
 
 
 def write_depth_frame(folder: Path, flexion_deg: float, seed: int) -> str:
-    """Into ``folder/camera/``: ``depth.png``, the subject's truth (``truth.toml``) posed at ``flexion_deg``
-    and seen by the oblique camera (350 mm, 35 deg lateral, 30 deg up; RealSense-like noise), a 16-bit PNG
-    in mm; ``intrinsics.txt`` (fx,fy,cx,cy, pixels); ``ct-in-camera-rough.txt``, the CT frame in the
+    """Into ``folder/camera/``: ``depth.png``, the subject's knee posed by its truth (``truth.toml``) at
+    ``flexion_deg`` and seen by the oblique camera (350 mm, 35 deg lateral, 30 deg up; RealSense-like noise),
+    a 16-bit PNG in mm. The skin it shows is made independently of the association model that ``knee fem``
+    builds from the folder: the tetrahedral tissue around the subject's own CT bones inside its CT skin
+    (:class:`knee.models.fem.tissue.TetTissue`, the honest benchmark's truth) posed with the truth's tibia; ``intrinsics.txt`` (fx,fy,cx,cy, pixels); ``ct-in-camera-rough.txt``, the CT frame in the
     camera's (4x4) turned about the knee and moved :data:`ROUGH_POSE_OFF` from the truth, for
     ``--initial-pose``; and
     ``truth.json``, the true flexion, TF joint coordinates and bone poses (CT to camera) to check a result
@@ -64,8 +68,13 @@ def write_depth_frame(folder: Path, flexion_deg: float, seed: int) -> str:
     folder = Path(folder)
     truth = Mechanism(load_model(folder / "truth.toml"))
     cam = default_camera()
-    depth, tf = case_depth(truth, flexion_deg, cam, DepthNoise(), seed)
-    frames = anatomical_frames(load_subject(folder))
+    subject = load_subject(folder)
+    say(f"knee synth-subject: posing the subject's soft tissue at {flexion_deg:g} deg for the depth frame "
+        f"(about 15 s) ...")
+    tissue = TetTissue(subject_anatomy(subject, truth.params), seed=seed)
+    tf = truth.solve(math.radians(flexion_deg))[0]
+    depth = tissue_case_depth(tissue, tf, cam, DepthNoise(), seed)
+    frames = anatomical_frames(subject)
     T_cam_model = invert_poses(cam.T_world_cam)  # the model frame is the femur's anatomical frame
     T_cam_femur = T_cam_model @ invert_poses(frames["femur"])
     T_cam_tibia = T_cam_model @ joint_to_pose(tf) @ invert_poses(frames["tibia"])
@@ -89,6 +98,7 @@ def write_depth_frame(folder: Path, flexion_deg: float, seed: int) -> str:
                                            for k, (name, v) in enumerate(zip(JOINT_COORDINATES, tf))},
                   "T_camera_femur_ct": T_cam_femur.tolist(), "T_camera_tibia_ct": T_cam_tibia.tolist(),
                   "camera": "oblique: 350 mm from the knee, 35 deg towards lateral, raised 30 deg; depth noise on",
-                  "skin": "the phantom's envelope posed by the truth (not the subject's CT skin posed)"}
+                  "skin": "the tetrahedral tissue around the subject's CT bones and skin, posed with the truth's "
+                          "tibia (not the association model)"}
     (folder / "camera" / "truth.json").write_text(json.dumps(truth_json, indent=1), encoding="utf-8")
     return intrinsics

@@ -72,17 +72,24 @@ def case_points(truth: Mechanism, flexion_deg: float, camera: Camera, noise: Dep
     return backproject(depth, camera.K, camera.T_world_cam), tf
 
 
-def tissue_case_points(tissue: TetTissue, truth_tf, camera: Camera, noise: DepthNoise | None,
-                       seed: int = 0) -> np.ndarray:
-    """The depth points (P, 3) (mm, world frame: the tissue's femur frame) a virtual camera sees of a truth
-    skin made independently of the association model: the tetrahedral tissue around the knee's bones (the
-    honest benchmark's truth, :class:`knee.models.fem.tissue.TetTissue`) with its femur held and its tibia
-    moved to the TF joint coordinates ``truth_tf`` (6,) (with noise drawn from ``seed``)."""
+def tissue_case_depth(tissue: TetTissue, truth_tf, camera: Camera, noise: DepthNoise | None,
+                      seed: int = 0) -> np.ndarray:
+    """The depth image (H, W) (mm, 0 where nothing is seen) a virtual camera (placed in the tissue's femur
+    frame) takes of a truth skin made independently of the association model: the tetrahedral tissue around
+    the knee's bones (the honest benchmark's truth, :class:`knee.models.fem.tissue.TetTissue`) with its femur
+    held and its tibia moved to the TF joint coordinates ``truth_tf`` (6,), with noise drawn from ``seed``."""
     skin = tissue.pose(joint_to_pose(np.asarray(truth_tf, float))).skin(tissue)
     depth = render_depth(skin.vertices, skin.faces, camera)
     if noise is not None:
         depth = noise.apply(depth, np.random.default_rng(seed))
-    return backproject(depth, camera.K, camera.T_world_cam)
+    return depth
+
+
+def tissue_case_points(tissue: TetTissue, truth_tf, camera: Camera, noise: DepthNoise | None,
+                       seed: int = 0) -> np.ndarray:
+    """The depth points (P, 3) (mm, world frame: the tissue's femur frame) of :func:`tissue_case_depth`'s
+    image."""
+    return backproject(tissue_case_depth(tissue, truth_tf, camera, noise, seed), camera.K, camera.T_world_cam)
 
 
 def model_targets(model: AssociationModel, mech: Mechanism) -> TargetPoints:
