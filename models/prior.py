@@ -427,6 +427,12 @@ ROUGH_REACHES_MM = ((60.0, 30.0, 15.0), (30.0, 15.0))
 #: How far (deg, mm) a rough guess of the knee's pose may be off (``knee fem --initial-pose``, the honest
 #: benchmark's rough poses: 15-30 deg, 25-50 mm).
 ROUGH_GUESS_WITHIN = (30.0, 50.0)
+#: A match from a rough guess that holds fewer than this share of the points within 5 mm of the skin is no
+#: match: the global search is tried as well (the share under which the methods take the points not to
+#: show the knee, :data:`knee.models.fem.methods.MIN_REGISTERED`). A guess far beyond its bounds (the knee
+#: turned 120 deg and 300 mm away) can leave the ICP where it started, with none of the points near the
+#: skin and so within the guess's bounds.
+ROUGH_LOCAL_HELD = 0.3
 #: Most points (after the 4 mm voxels) a rough registration searches with; a larger cloud is searched with
 #: a random (seeded) subsample of this many, its best match then scored on all of them. A view of a knee
 #: holds fewer (the honest benchmark's 300 depth images: 3,000-7,000); a frame that also shows a table or a
@@ -607,8 +613,10 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
     honest benchmark: a lateral view of the phantom at 45 deg, its guess 24 deg and 44 mm off, matched the
     skin at 15 deg flexion 122 mm away with 53 % of the points; the global starts found 86 %, 4 mm from the
     truth). A cloud of more than ``max_points`` (:data:`ROUGH_MAX_POINTS` unless given; after 4 mm voxels)
-    is searched with a subsample of that many; the match it finds is scored on all of them.
-    ``local_below``: where the match from ``T_init`` holds fewer than this share of the points within 5 mm,
+    is searched with a subsample of that many; the match it finds is scored on all of them. So is a match
+    from ``T_init`` that holds fewer than :data:`ROUGH_LOCAL_HELD` of the points (no match at all: a guess
+    far beyond its bounds can leave the ICP where it started, and so within them), unless ``local_below``
+    is given. ``local_below``: where the match from ``T_init`` holds fewer than this share of the points within 5 mm,
     it is returned without the global starts (a caller that first leaves out the background, then tries
     them). Raises :class:`KneeInputError` when the cloud is too small."""
     every = voxel_downsample(_checked_cloud(points), VOXEL_MM)
@@ -704,7 +712,8 @@ def register_roughly(skin: SkinModel, points, T_init=None, flexions_deg=ROUGH_FL
     # motion of the knee's centre (model frame: on the femur's axis at the joint line, where the shank begins)
     turned, moved = placements_apart(skin, best.T_model_world, T_init)
     poor = local_below is not None and best.inliers < local_below
-    if (turned > 2.0 * guess_within[0] or moved > 2.0 * guess_within[1]) and not poor:
+    left = turned > 2.0 * guess_within[0] or moved > 2.0 * guess_within[1]
+    if (left or (local_below is None and best.inliers < ROUGH_LOCAL_HELD)) and not poor:
         other = global_search()
         if (other.inliers, -other.rms) > (best.inliers, -best.rms):
             best = other

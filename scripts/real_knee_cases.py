@@ -6,9 +6,9 @@ That knee has no measured motion, so no fitted prior: the prior here is a templa
 `volunteer` parameter set scaled to this knee's femoral width (its link endpoints and lengths; its PF group
 dropped), with every TF link endpoint then moved 1-2 mm (seed 3), and the truth is the unperturbed
 template's motion, anchored at the scanned pose (the template's motion from its pose at the scanned
-flexion carries this knee's tibia). The truth skin is posed with the bones by the association model itself (a stand-in
-for an independent truth skin, :mod:`knee.app.experiments.subject_cases`), seen by an oblique camera
-aimed at the joint line, 350 mm away; the methods get the points in the camera's frame and a rough pose
+flexion carries this knee's tibia). The truth skin is posed with the bones by another model of the tissue than the
+methods' (the tetrahedral tissue around the knee's bones, :mod:`knee.app.experiments.subject_cases`), seen
+by an oblique camera aimed at the joint line, 350 mm away; the methods get the points in the camera's frame and a rough pose
 15 deg and 25 mm off.
 
     .venv/bin/python scripts/real_knee_cases.py [--data ../shared/data] [--out real_knee_cases.csv]

@@ -13,27 +13,43 @@ from tests.test_cli import assert_clean_error, run
 from tests.test_fem_cli import _rrd_entities
 
 
+#: How close the mechanism alone (iv) finds the case's flexion where the tests check that the knee was
+#: found (placement, background): on the tissue's skin it reads 56.5 deg for 60 (it registers the scanned
+#: skin blended between the bones; method iii, 59.3); a match in the wrong place or turned over is tens of
+#: degrees off, or turned (checked beside it).
+KINEMATICS_FLEXION_DEG = 5.0
+
+
 @pytest.fixture(scope="module")
 def case(tmp_path_factory):
     """A synthetic subject (with its CT skin), a prior (its truth with every TF endpoint moved 1-2 mm),
-    and a cloud of the truth's phantom skin at 60 deg in the camera's own frame, with a rough pose of the
-    CT in the camera (20 deg and 37 mm off)."""
+    and a cloud at 60 deg in the camera's own frame of the skin of a tetrahedral tissue around the subject's
+    bones inside its CT skin, posed with the truth's tibia (not the association model's), with a rough pose
+    of the CT in the camera (20 deg and 37 mm off); and the same view of the phantom's capsule skin."""
     import knee
-    from knee.app.experiments.cases import case_points
+    from knee.app.experiments.cases import case_points, tissue_case_points
     from knee.fitting.optimize import perturb_endpoints
     from knee.fitting.pipeline import anatomical_frames
     from knee.fitting.subject import load_subject
+    from knee.fitting.subject_anatomy import subject_anatomy
     from knee.models.fem.depth import DepthNoise, default_camera
+    from knee.models.fem.tissue import TetTissue
     from knee.models.mechanism.params import save_toml
 
     tmp = tmp_path_factory.mktemp("fem-subject")
     d = knee.make_subject(tmp / "subject", seed=0)
     truth = knee.Mechanism(knee.load_model(d / "truth.toml"))
     cam = default_camera()
-    pts_model, tf = case_points(truth, 60.0, cam, DepthNoise(), 3)
+    tf = truth.solve(np.radians(60.0))[0]
+    tissue = TetTissue(subject_anatomy(load_subject(d), truth.params))
     T_cam_model = np.linalg.inv(cam.T_world_cam)
-    pts_cam = pts_model @ T_cam_model[:3, :3].T + T_cam_model[:3, 3]
-    o3d.io.write_point_cloud(str(tmp / "cloud.ply"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts_cam)))
+    for name, pts_model in (("cloud", tissue_case_points(tissue, tf, cam, DepthNoise(), 3)),
+                            # the phantom's envelope of rigid capsules: a near-round leg, on which a half turn
+                            # about the thigh is a rival match (for the tests of choosing between matches)
+                            ("capsule", case_points(truth, 60.0, cam, DepthNoise(), 3)[0])):
+        pts_cam = pts_model @ T_cam_model[:3, :3].T + T_cam_model[:3, 3]
+        o3d.io.write_point_cloud(str(tmp / f"{name}.ply"),
+                                 o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts_cam)))
     frames = anatomical_frames(load_subject(d))
     T_cam_ct = T_cam_model @ np.linalg.inv(frames["femur"])
     D = np.eye(4)
@@ -58,8 +74,8 @@ def test_the_bones_of_a_subject_in_the_cameras_frame(case):
     # its offset from the result is about that, and no warning
     assert r["initial_pose_off"]["deg"] == pytest.approx(20.0, abs=3.0) and r["initial_pose_off"]["mm"] > 100.0
     assert not any("--initial-pose was" in w for w in r["warnings"])
-    # the femur's CT frame in the camera: within a few mm and about a degree of the truth (the cloud came
-    # from the truth's phantom skin, not from the subject's own: the thigh's axial position is the loosest)
+    # the femur's CT frame in the camera: within a few mm and about a degree of the truth (measured 1.5 deg,
+    # 7.0 mm at the CT's origin, far from the knee; the flexion 59.3 deg)
     err = np.linalg.inv(case["T_cam_ct"]) @ np.array(r["T_camera_femur_ct"])
     assert np.degrees(Rotation.from_matrix(err[:3, :3]).magnitude()) < 3.0 and np.linalg.norm(err[:3, 3]) < 10.0
     # the poses are rigid and the joint coordinates agree with them
@@ -414,15 +430,15 @@ def test_a_whole_frame_leaves_out_its_background_before_any_global_search(case, 
     original = P.view_starts
     monkeypatch.setattr(P, "view_starts", lambda sk, src, *a, **k: sizes.append(len(src)) or original(sk, src, *a, **k))
 
-    def found(T_init):
-        recon, rough = reconstruct_in_camera(model, prior, frame, T_init, "kinematics")
+    def found(T_init, cloud=None):
+        recon, rough = reconstruct_in_camera(model, prior, frame if cloud is None else cloud, T_init, "kinematics")
         T = invert_poses(rough.T_model_world) @ recon.bone_pose("femur", model.femur.el.X)  # rest -> camera
         turned = np.degrees(Rotation.from_matrix(T[:3, :3].T @ T_cam_model[:3, :3]).magnitude())
         return turned, recon.flexion_deg, recon.notes
 
     guess = np.loadtxt(case["tmp"] / "pose.txt") @ case["frames"]["femur"]  # the model frame in the camera's
     turned, flexion, notes = found(invert_poses(guess))
-    assert abs(flexion - math.degrees(case["tf"][0])) < 2.0 and turned < 3.0
+    assert abs(flexion - math.degrees(case["tf"][0])) < KINEMATICS_FLEXION_DEG and turned < 3.0
     assert any("left out as background" in n for n in notes)
     assert all(s < P.ROUGH_MAX_POINTS for s in sizes), sizes
     far = np.eye(4)
@@ -430,12 +446,17 @@ def test_a_whole_frame_leaves_out_its_background_before_any_global_search(case, 
     far[:3, 3] = [300.0, 0.0, 0.0]
     sizes.clear()
     turned, flexion, _ = found(invert_poses(T_cam_model @ far))
-    assert abs(flexion - math.degrees(case["tf"][0])) < 2.0 and turned < 3.0
+    assert abs(flexion - math.degrees(case["tf"][0])) < KINEMATICS_FLEXION_DEG and turned < 3.0
     assert sizes and all(s < P.ROUGH_MAX_POINTS for s in sizes), sizes
+    # the leg alone from that guess: the ICP hardly moves from it (no point within its reach), which leaves
+    # the match within the guess's bounds with none of the points on the skin; the global search is tried
+    # too (before, the points were refused as not showing the knee)
+    turned, flexion, _ = found(invert_poses(T_cam_model @ far), pts)
+    assert abs(flexion - math.degrees(case["tf"][0])) < KINEMATICS_FLEXION_DEG and turned < 3.0
     # without a guess, the table (most of the frame, on one plane) is left out before the global search
     sizes.clear()
     turned, flexion, notes = found(None)
-    assert abs(flexion - math.degrees(case["tf"][0])) < 2.0 and turned < 3.0
+    assert abs(flexion - math.degrees(case["tf"][0])) < KINEMATICS_FLEXION_DEG and turned < 3.0
     assert any("left out as background" in n for n in notes)
     assert sizes and all(s < P.ROUGH_MAX_POINTS for s in sizes), sizes
     assert not any("another place" in n for n in notes)
@@ -515,9 +536,11 @@ def test_the_points_near_the_skin_are_those_of_a_plain_nearest_neighbour_search(
 
 def test_the_background_filter_judges_a_global_searchs_alternatives(case, monkeypatch):
     """Where the global search's best match on a frame with its background is wrong (here: the truth turned
-    half a turn about the thigh, as a near-round leg allows) and the right one is among its alternatives,
-    the background's filter takes each through the same filter and keeps the one with the most of the
-    frame's points on the skin: the right one. Without the alternative, the wrong one stays."""
+    half a turn about the thigh, as a near-round leg allows: the phantom's capsule leg, on which that turn is
+    a rival match) and the right one is among its alternatives, the background's filter takes each through
+    the same filter and keeps the one with the most of the frame's points on the skin: the right one.
+    Without the alternative, the wrong one stays. (On the tissue's skin, whose front is not round, the
+    wrong match's own refinement already turns back to the right one.)"""
     import knee
     import knee.models.fem.methods as M
     import knee.models.prior as P
@@ -526,7 +549,7 @@ def test_the_background_filter_judges_a_global_searchs_alternatives(case, monkey
     from knee.foundations.conventions import invert_poses
     from knee.models.fem.scene import build_knee_model
 
-    pts = np.asarray(o3d.io.read_point_cloud(str(case["tmp"] / "cloud.ply")).points)
+    pts = np.asarray(o3d.io.read_point_cloud(str(case["tmp"] / "capsule.ply")).points)
     T_cam_model = case["T_cam_ct"] @ case["frames"]["femur"]
     g = np.random.default_rng(1).uniform(-400.0, 400.0, size=(60000, 2))
     table = np.column_stack([np.full(len(g), -90.0), g]) @ T_cam_model[:3, :3].T + T_cam_model[:3, 3]
@@ -603,4 +626,4 @@ def test_a_rough_match_the_skin_fits_poorly_is_placed_again_by_the_global_search
     assert calls == [False, True]
     assert any("fits poorly" in n and "global search's placement fits it better" in n for n in recon.notes), recon.notes
     assert recon.estimate.rms < POOR_FIT_RMS_MM
-    assert abs(recon.flexion_deg - math.degrees(case["tf"][0])) < 2.0 and turned < 3.0
+    assert abs(recon.flexion_deg - math.degrees(case["tf"][0])) < KINEMATICS_FLEXION_DEG and turned < 3.0

@@ -154,8 +154,8 @@ def run_subject(args) -> int:
     rows_idx = np.unique(np.linspace(0, len(motion.tf) - 1, min(args.frames, len(motion.tf))).round().astype(int))
     anatomy = subject_anatomy(subject, prior.params)
     say(f"knee compare: subject {subject.name}, prior {prior.params.name}; {len(rows_idx)} rows of "
-        f"{args.truth_motion} x {len(azimuths)} camera(s) x {len(methods)} methods (truth skin: the association "
-        f"model's own tissue posed with the bones, a stand-in)")
+        f"{args.truth_motion} x {len(azimuths)} camera(s) x {len(methods)} methods (truth skin: a tetrahedral "
+        f"tissue model around the subject's bones, posed with them)")
     bar = ProgressBar()
     rows = compare_subject(anatomy, prior, motion.tf[rows_idx], methods, tuple(azimuths),
                            None if args.no_noise else DepthNoise(), args.seed,

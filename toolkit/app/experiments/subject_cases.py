@@ -2,10 +2,10 @@
 (``knee compare SUBJECT_DIR --prior FITTED.toml --truth-motion MOTION.csv``).
 
 A case: a row of the measured motion (TF joint coordinates, e.g. from dynamic imaging) poses the subject's
-CT bones; the skin is posed with them by the association model itself, with the bones' cells prescribed
-along the way (a stand-in for an independent truth skin: the estimator's model has the same tissue, which
-favours methods (ii) and (iii); the benchmark of the next issue replaces it); a virtual camera, placed
-relative to the knee, sees that skin with depth noise; the methods see only the points, in the camera's
+CT bones; the skin is posed with them by another model of the tissue than the methods' (the tetrahedral
+tissue around the subject's bones inside its CT skin, :class:`knee.models.fem.tissue.TetTissue`, as in the
+honest benchmark's case sets), so that the truth is not made by the code that estimates it; a virtual
+camera, placed relative to the knee, sees that skin with depth noise; the methods see only the points, in the camera's
 own frame, and a rough pose of the knee in it (the truth turned by 15 deg and moved by 25 mm), and place
 the bones in the camera's frame. The errors are measured there at the target points (ACL/PCL footprints
 from the prior's attachments, the epiphysis).
@@ -28,8 +28,9 @@ from knee.foundations.pointclouds import backproject
 from knee.models.evaluation import pose_errors, target_errors, target_points
 from knee.models.fem.anatomy import KneeAnatomy
 from knee.models.fem.depth import Camera, DepthNoise, default_camera, render_depth
-from knee.models.fem.methods import METHODS, STAGES, move_tibia, quasi_static, reconstruct_in_camera
+from knee.models.fem.methods import METHODS, STAGES, reconstruct_in_camera
 from knee.models.fem.scene import build_knee_model
+from knee.models.fem.tissue import TetTissue
 from knee.models.mechanism.solver import Mechanism
 
 #: The rough pose the methods are given: the truth turned by this much (deg) and moved by this much (mm).
@@ -48,34 +49,18 @@ class SubjectCase:
     points: np.ndarray
 
 
-def posed_skin(anatomy: KneeAnatomy, prior: Mechanism, T_tibia, increments: int = 4):
-    """The skin (vertices (S, 3), faces) with the tibia moved from the scan to ``T_tibia`` (4, 4) by the
-    association model with the bones' cells prescribed (a fresh model; quasi-static increments)."""
-    model = build_knee_model(anatomy, prior=prior)
-    T0 = anatomy.tibia_pose
-    rot = Rotation.from_matrix(np.stack([T0[:3, :3], np.asarray(T_tibia)[:3, :3]]))
-    f = np.arange(1, increments + 1) / increments
-    # the increments: rotation by slerp-like interpolation of the relative rotation, translation linearly
-    rel = (rot[0].inv() * rot[1]).as_rotvec()
-    poses = np.tile(np.eye(4), (increments, 1, 1))
-    poses[:, :3, :3] = (rot[0] * Rotation.from_rotvec(f[:, None] * rel[None])).as_matrix()
-    poses[:, :3, 3] = (1 - f)[:, None] * T0[:3, 3] + f[:, None] * np.asarray(T_tibia)[:3, 3]
-    with quasi_static(model.solver):
-        # the bones' cells prescribed, not the methods' default (their own nodes): a stand-in truth made by
-        # the model itself should not also share the methods' way of posing it
-        move_tibia(model, poses, rebase=False, carry="cells")
-    return model.posed_skin_vertices(), model.skin_faces
-
-
-def subject_cases(anatomy: KneeAnatomy, prior: Mechanism, motion_tf, azimuths=(35.0,), noise=DepthNoise(),
+def subject_cases(anatomy: KneeAnatomy, motion_tf, azimuths=(35.0,), noise=DepthNoise(),
                   seed: int = 0) -> list[SubjectCase]:
     """The cases of a measured motion's rows ``motion_tf`` (n, 6) (rad, mm), each seen from cameras at
-    the given azimuths (deg toward lateral, 350 mm, raised 30 deg, aimed at the joint line)."""
+    the given azimuths (deg toward lateral, 350 mm, raised 30 deg, aimed at the joint line); the skin is the
+    subject's tetrahedral tissue (meshed once, from ``seed``) posed with the tibia at each row."""
     rng = np.random.default_rng(seed)
+    tissue = TetTissue(anatomy, seed=seed)
     out = []
     for tf in np.atleast_2d(np.asarray(motion_tf, float)):
         T = joint_to_pose(tf)
-        verts, faces = posed_skin(anatomy, prior, T)
+        skin = tissue.pose(T).skin(tissue)
+        verts, faces = skin.vertices, skin.faces
         for az in azimuths:
             cam = default_camera(azimuth_deg=az, target=(0.0, anatomy.joint_y, 0.0))
             depth = render_depth(verts, faces, cam)
@@ -189,7 +174,7 @@ def compare_subject(anatomy: KneeAnatomy, prior: Mechanism, motion_tf, methods=M
                     noise=DepthNoise(), seed: int = 0,
                     progress: Callable[[int, int, str], None] | None = None) -> list[CompareRow]:
     """Every method on every case of :func:`subject_cases`; a run that fails is a row with its reason."""
-    cases = subject_cases(anatomy, prior, motion_tf, azimuths, noise, seed)
+    cases = subject_cases(anatomy, motion_tf, azimuths, noise, seed)
     rows, total = [], len(cases) * len(methods)
     for i, case in enumerate(cases):
         for j, method in enumerate(methods):
