@@ -96,6 +96,8 @@ def run(args) -> int:
         prior = Mechanism(perturb_endpoints(params, 0.5 * args.perturb, args.perturb, seed=args.seed))
         origin = (f"truth {params.name}; prior = {params.name} with every TF link endpoint moved "
                   f"{0.5 * args.perturb:g}-{args.perturb:g} mm (seed {args.seed})")
+    origin += ("; truth skin: the phantom's envelope, made by the same code as the model's skin (not an independent "
+               "truth: a case set's is, scripts/build_case_set.py)")
     say(f"knee compare: {origin}; {len(flexions)} flexion angles x {len(cams)} camera(s) x {len(methods)} methods")
     with staged_folder(out) as tmp:
         recorder = CompareRecorder(tmp / "compare.rrd", truth_phantom(truth), truth_phantom(prior), methods)

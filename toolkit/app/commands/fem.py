@@ -100,7 +100,9 @@ def run(args) -> int:
         pts, truth_tf = case_points(truth, args.flexion, cam, DepthNoise() if not args.no_noise else None,
                                     args.seed, model.settings)
         truth_info = case_truth(model, mech, truth, truth_tf)
-        say(f"  case: {truth.params.name} at {args.flexion:g} deg seen by the {args.camera} camera, {len(pts)} depth points")
+        say(f"  case: {truth.params.name} at {args.flexion:g} deg seen by the {args.camera} camera, {len(pts)} depth points "
+            f"(the truth's skin: the phantom's envelope, made by the same code as the model's skin; not an independent "
+            f"truth: knee demo's and the case sets' are)")
     else:
         pts = measured
         say(f"  measured point cloud: {len(pts)} points (no truth: no target point errors)")
