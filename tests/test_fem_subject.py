@@ -13,11 +13,13 @@ from tests.test_cli import assert_clean_error, run
 from tests.test_fem_cli import _rrd_entities
 
 
-#: How close the mechanism alone (iv) finds the case's flexion where the tests check that the knee was
-#: found (placement, background): on the tissue's skin it reads 56.5 deg for 60 (it registers the scanned
-#: skin blended between the bones; method iii, 59.3); a match in the wrong place or turned over is tens of
-#: degrees off, or turned (checked beside it).
+#: How close the mechanism alone (iv), placed from the case's rough pose on the leg alone, finds the case's
+#: flexion: on the tissue's skin it reads 56.5 deg for 60 (it registers the scanned skin blended between the
+#: bones; method iii, 59.3). The placement tests compare their runs with that reference run instead, to
+#: PLACED_SAME_DEG: a knee found in the same place gives the same answer.
 KINEMATICS_FLEXION_DEG = 5.0
+#: How far (deg) a placement test's (iv) flexion may lie from the reference run's (measured: within 0.01).
+PLACED_SAME_DEG = 0.5
 
 
 @pytest.fixture(scope="module")
@@ -437,8 +439,11 @@ def test_a_whole_frame_leaves_out_its_background_before_any_global_search(case, 
         return turned, recon.flexion_deg, recon.notes
 
     guess = np.loadtxt(case["tmp"] / "pose.txt") @ case["frames"]["femur"]  # the model frame in the camera's
+    _, ref, _ = found(invert_poses(guess), pts)  # the reference: the leg alone from the case's guess
+    assert abs(ref - math.degrees(case["tf"][0])) < KINEMATICS_FLEXION_DEG
+    sizes.clear()
     turned, flexion, notes = found(invert_poses(guess))
-    assert abs(flexion - math.degrees(case["tf"][0])) < KINEMATICS_FLEXION_DEG and turned < 3.0
+    assert abs(flexion - ref) < PLACED_SAME_DEG and turned < 3.0
     assert any("left out as background" in n for n in notes)
     assert all(s < P.ROUGH_MAX_POINTS for s in sizes), sizes
     far = np.eye(4)
@@ -446,17 +451,17 @@ def test_a_whole_frame_leaves_out_its_background_before_any_global_search(case, 
     far[:3, 3] = [300.0, 0.0, 0.0]
     sizes.clear()
     turned, flexion, _ = found(invert_poses(T_cam_model @ far))
-    assert abs(flexion - math.degrees(case["tf"][0])) < KINEMATICS_FLEXION_DEG and turned < 3.0
+    assert abs(flexion - ref) < PLACED_SAME_DEG and turned < 3.0
     assert sizes and all(s < P.ROUGH_MAX_POINTS for s in sizes), sizes
     # the leg alone from that guess: the ICP hardly moves from it (no point within its reach), which leaves
     # the match within the guess's bounds with none of the points on the skin; the global search is tried
     # too (before, the points were refused as not showing the knee)
     turned, flexion, _ = found(invert_poses(T_cam_model @ far), pts)
-    assert abs(flexion - math.degrees(case["tf"][0])) < KINEMATICS_FLEXION_DEG and turned < 3.0
+    assert abs(flexion - ref) < PLACED_SAME_DEG and turned < 3.0
     # without a guess, the table (most of the frame, on one plane) is left out before the global search
     sizes.clear()
     turned, flexion, notes = found(None)
-    assert abs(flexion - math.degrees(case["tf"][0])) < KINEMATICS_FLEXION_DEG and turned < 3.0
+    assert abs(flexion - ref) < PLACED_SAME_DEG and turned < 3.0
     assert any("left out as background" in n for n in notes)
     assert sizes and all(s < P.ROUGH_MAX_POINTS for s in sizes), sizes
     assert not any("another place" in n for n in notes)
@@ -619,6 +624,8 @@ def test_a_rough_match_the_skin_fits_poorly_is_placed_again_by_the_global_search
     monkeypatch.setattr(M, "_placed", lambda *a, **k: calls.append(a[2] is None) or placed(*a, **k))
     turned, recon = found()
     assert calls == [False] and recon.estimate.rms < POOR_FIT_RMS_MM
+    assert abs(recon.flexion_deg - math.degrees(case["tf"][0])) < KINEMATICS_FLEXION_DEG and turned < 3.0
+    ref = recon.flexion_deg  # the right placement's answer, which the global search's must give again
     assert not any("global search's placement" in n for n in recon.notes)
     calls.clear()
     monkeypatch.setattr(M, "_placed", turned_over)
@@ -626,4 +633,4 @@ def test_a_rough_match_the_skin_fits_poorly_is_placed_again_by_the_global_search
     assert calls == [False, True]
     assert any("fits poorly" in n and "global search's placement fits it better" in n for n in recon.notes), recon.notes
     assert recon.estimate.rms < POOR_FIT_RMS_MM
-    assert abs(recon.flexion_deg - math.degrees(case["tf"][0])) < KINEMATICS_FLEXION_DEG and turned < 3.0
+    assert abs(recon.flexion_deg - ref) < PLACED_SAME_DEG and turned < 3.0

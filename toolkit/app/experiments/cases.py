@@ -57,10 +57,14 @@ def case_depth(truth: Mechanism, flexion_deg: float, camera: Camera, noise: Dept
     ph = truth_phantom(truth, settings)
     tf, pf, _ = truth.solve(np.radians(flexion_deg))
     skin = ph.skin(joint_to_pose(tf), joint_to_pose(pf) if truth.has_pf else None)
-    depth = render_depth(skin.vertices, skin.faces, camera)
-    if noise is not None:
-        depth = noise.apply(depth, np.random.default_rng(seed))
-    return depth, tf
+    return seen_depth(skin.vertices, skin.faces, camera, noise, np.random.default_rng(seed)), tf
+
+
+def seen_depth(vertices, faces, camera: Camera, noise: DepthNoise | None, rng: np.random.Generator) -> np.ndarray:
+    """The depth image (H, W) (mm, 0 where nothing is seen) a virtual camera takes of a surface (vertices in
+    the camera's world frame), with ``noise`` drawn from ``rng`` (None: exact)."""
+    depth = render_depth(vertices, faces, camera)
+    return depth if noise is None else noise.apply(depth, rng)
 
 
 def case_points(truth: Mechanism, flexion_deg: float, camera: Camera, noise: DepthNoise | None, seed: int = 0,
@@ -79,10 +83,7 @@ def tissue_case_depth(tissue: TetTissue, truth_tf, camera: Camera, noise: DepthN
     the knee's bones (the honest benchmark's truth, :class:`knee.models.fem.tissue.TetTissue`) with its femur
     held and its tibia moved to the TF joint coordinates ``truth_tf`` (6,), with noise drawn from ``seed``."""
     skin = tissue.pose(joint_to_pose(np.asarray(truth_tf, float))).skin(tissue)
-    depth = render_depth(skin.vertices, skin.faces, camera)
-    if noise is not None:
-        depth = noise.apply(depth, np.random.default_rng(seed))
-    return depth
+    return seen_depth(skin.vertices, skin.faces, camera, noise, np.random.default_rng(seed))
 
 
 def tissue_case_points(tissue: TetTissue, truth_tf, camera: Camera, noise: DepthNoise | None,

@@ -21,13 +21,13 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from knee.app.experiments.cases import CompareRow, reconstruction_row
+from knee.app.experiments.cases import CompareRow, reconstruction_row, seen_depth
 from knee.foundations.conventions import invert_poses, joint_to_pose, matrix_to_cardan, transform_points
 from knee.foundations.errors import KneeError
 from knee.foundations.pointclouds import backproject
 from knee.models.evaluation import pose_errors, target_errors, target_points
 from knee.models.fem.anatomy import KneeAnatomy
-from knee.models.fem.depth import Camera, DepthNoise, default_camera, render_depth
+from knee.models.fem.depth import Camera, DepthNoise, default_camera
 from knee.models.fem.methods import METHODS, STAGES, reconstruct_in_camera
 from knee.models.fem.scene import build_knee_model
 from knee.models.fem.tissue import TetTissue
@@ -60,12 +60,9 @@ def subject_cases(anatomy: KneeAnatomy, motion_tf, azimuths=(35.0,), noise=Depth
     for tf in np.atleast_2d(np.asarray(motion_tf, float)):
         T = joint_to_pose(tf)
         skin = tissue.pose(T).skin(tissue)
-        verts, faces = skin.vertices, skin.faces
         for az in azimuths:
             cam = default_camera(azimuth_deg=az, target=(0.0, anatomy.joint_y, 0.0))
-            depth = render_depth(verts, faces, cam)
-            if noise is not None:
-                depth = noise.apply(depth, rng)
+            depth = seen_depth(skin.vertices, skin.faces, cam, noise, rng)
             out.append(SubjectCase(f"az {az:g}", math.degrees(tf[0]), T, cam, backproject(depth, cam.K)))
     return out
 
