@@ -142,3 +142,71 @@ def test_isometric_lateral_spring(knee_model, volunteer):
     bt = transform_points(res.tf_poses @ np.linalg.inv(T0), b[None, :])[:, 0]
     L = np.linalg.norm(bt - a, axis=1)
     assert L.std() < 1.0 and L.min() > 10.0
+
+
+def _front_samples(m, n, seed=0):
+    """Points on the phantom skin's faces that face +x (what a camera far along +x sees), (n, 3)."""
+    import trimesh
+
+    skin = trimesh.Trimesh(m.skin_vertices, m.skin_faces, process=False)
+    front = skin.submesh([np.flatnonzero(skin.face_normals[:, 0] > 0.2)], append=True)
+    return trimesh.sample.sample_surface(front, n, seed=seed)[0]
+
+
+def test_depth_point_forces_do_not_pull_a_fitted_skin_towards_the_camera(knee_model):
+    """A one-sided cloud lying on the skin (its faces turned towards a camera along +x): the paper's springs,
+    skin to cloud, pull the skin behind the silhouette towards the silhouette's points, a net pull towards
+    the camera though the skin fits; the depth points' springs pull it hardly at all (what is left is the
+    skin's curvature between a point and its nearest vertex)."""
+    from knee.models.fem.forces import SKIN_AREA_PER_SPRING_MM2, DepthPointForces, skin_point_areas
+
+    m = knee_model
+    cloud = _front_samples(m, 20000)
+    a = skin_point_areas(m.skin_vertices, m.skin_faces)
+    skin_to_cloud = SurfaceForces(m.grid, m.skin_vertices, cloud, k=2.0, weights=a / SKIN_AREA_PER_SPRING_MM2)
+    cloud_to_skin = DepthPointForces(m.grid, m.skin_vertices, m.skin_faces, cloud, k=2.0)
+    old = skin_to_cloud.forces(m.grid.X).sum(axis=0)[0]
+    new = cloud_to_skin.forces(m.grid.X).sum(axis=0)[0]
+    assert old > 50.0                                    # N: towards the camera
+    assert abs(new) < 0.1 * old
+    assert cloud_to_skin.within_fraction == pytest.approx(1.0)
+
+
+def test_depth_point_forces_pull_along_the_normals_by_the_area_each_point_stands_for(knee_model):
+    """The front faces' centres moved 1 mm along x: each point pulls its own face (the nearest: faces whose
+    inscribed circle's radius is over 2 mm, and turned towards x) along the face's normal by k voxel^2 / 44 mm^2 per mm of the move along it, a third
+    on each corner. The grid's resultant carries the springs' (J^T keeps it). A cloud twice as dense pulls
+    the same (the 4 mm voxels); apply and matrix agree, and both are the forces' derivative for the pairs
+    held."""
+    import trimesh
+
+    from knee.models.fem.forces import DEPTH_VOXEL_MM, SKIN_AREA_PER_SPRING_MM2, DepthPointForces
+
+    m = knee_model
+    skin = trimesh.Trimesh(m.skin_vertices, m.skin_faces, process=False)
+    nrm = skin.face_normals
+    perimeter = np.linalg.norm(skin.triangles - np.roll(skin.triangles, 1, axis=1), axis=2).sum(axis=1)
+    front = np.flatnonzero((nrm[:, 0] > 0.5) & (2.0 * skin.area_faces / perimeter > 2.0))
+    assert len(front) > 100
+    t = np.array([1.0, 0.0, 0.0])
+    f = DepthPointForces(m.grid, skin.vertices, skin.faces, skin.triangles_center[front] + t, k=2.0, voxel=0.5)
+    got = f.forces(m.grid.X).sum(axis=0)
+    k_point = 2.0 * 0.5 ** 2 / SKIN_AREA_PER_SPRING_MM2
+    want = k_point * (nrm[front] * (nrm[front] @ t)[:, None]).sum(axis=0)
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9)
+    assert f.active.sum() == len(np.unique(skin.faces[front]))
+    # density: the skin's front sampled at two densities, both moved 2 mm, pull alike (within 10 %)
+    pulls = [DepthPointForces(m.grid, skin.vertices, skin.faces, _front_samples(m, n) + 2 * t, k=2.0)
+             .forces(m.grid.X).sum(axis=0)[0] for n in (30000, 60000)]
+    assert DEPTH_VOXEL_MM == 4.0 and pulls[1] == pytest.approx(pulls[0], rel=0.1) and pulls[0] > 0
+    # the stiffness: apply == matrix; and, the points on the skin (no pull), minus the forces' change for a
+    # small grid motion (the Gauss-Newton stiffness leaves out the normals' turn, which a zero pull does not see)
+    rng = np.random.default_rng(3)
+    p = rng.normal(size=m.grid.X.shape)
+    np.testing.assert_allclose(f.matrix() @ p.ravel(), f.apply(p).ravel(), atol=1e-9)
+    on = DepthPointForces(m.grid, skin.vertices, skin.faces, skin.triangles_center[front], k=2.0, voxel=0.5)
+    f0 = on.forces(m.grid.X)
+    assert np.abs(f0).max() < 1e-9
+    dx = 1e-3 * p
+    lin = -on.apply(dx)
+    assert np.linalg.norm(on.forces(m.grid.X + dx) - lin) < 0.01 * np.linalg.norm(lin)

@@ -14,6 +14,12 @@
   10 mm and moves by 0.1 mm per step (down when more than half the skin points are within it, up
   otherwise), kept within 1-10 mm.
 
+* :class:`DepthPointForces` (the prior's methods): each depth point pulls the nearest point of the skin's
+  surface, along its face's normal; the pull per mm^2 as :class:`SurfaceForces`' spread by area. On a one-sided view
+  the skin-to-cloud springs pull the skin behind the silhouette, which no depth point shows, towards the
+  silhouette's points, so the leg is drawn towards the camera (measured on the honest benchmark: the
+  femur 0.4-0.9 mm towards it over the surface phase); a depth point's nearest skin point is a point the
+  camera can have seen.
 Both act through the mapping (forces on embedded points -> grid forces by J^T); the surface forces also
 provide their stiffness (k J^T J over the active points) to the implicit solve.
 """
@@ -22,10 +28,11 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+import trimesh
 from scipy.spatial import cKDTree
 
 from knee.foundations.geometry import principal_axes as _principal_axes, rigid_register
-from knee.foundations.pointclouds import NearCloud
+from knee.foundations.pointclouds import NearCloud, voxel_downsample
 from knee.models.fem.mapping import TrilinearMapping
 
 PAPER_BONE_FORCES = (9000.0, 23000.0, 3000.0, 6000.0)
@@ -156,3 +163,99 @@ class SurfaceForces:
     def matrix(self):
         Ja = self.map.J3[np.repeat(self.active, 3)]
         return (Ja.T @ sp.diags(np.repeat(self.kp[self.active], 3)) @ Ja).tocsr()
+
+
+#: The voxel (mm) a depth cloud is thinned to before :class:`DepthPointForces` pulls with it: each point then
+#: stands for about ``DEPTH_VOXEL_MM ** 2`` of skin, whatever the camera's distance or resolution.
+DEPTH_VOXEL_MM = 4.0
+#: How far (mm) a depth point may lie from its nearest skin point and still pull it: the largest reference
+#: distance of :class:`SurfaceForces`.
+DEPTH_REACH_MM = 10.0
+
+
+class DepthPointForces:
+    """Springs from each depth point to the nearest point of the skin's surface (a point on one of its
+    faces; the skin's vertices embedded in the grid), acting along that face's normal: the skin may slide
+    under the points, only its distance to them is measured, and a skin through the points is not pulled.
+    The cloud is thinned to :data:`DEPTH_VOXEL_MM` voxels and each point's spring is ``k`` times the skin
+    area it stands for over :data:`SKIN_AREA_PER_SPRING_MM2`, so that a skin seen all over is pulled per
+    mm^2 as :class:`SurfaceForces` spread by area pulls it. Points further than ``reach`` mm from the skin
+    do not pull. The nearest face is sought among the faces of the skin vertex nearest the point and the
+    ``candidates`` faces whose centres lie nearest it.
+
+    The correspondence runs from the data to the model, as the camera sees: every depth point lies on skin
+    the camera saw, while a skin point need not have been seen. :class:`SurfaceForces` (the paper's springs,
+    skin to cloud) pulls the skin just behind the silhouette towards the silhouette's points, a net pull
+    towards the camera however well the skin fits; pairing a point with the nearest skin *vertex* instead of
+    the surface pulls a convex skin inwards (a point on a face lies under its corners' tangent planes).
+
+    ``forces(x)`` re-pairs the points with the skin as the grid ``x`` has it; ``apply`` and ``matrix`` give
+    the stiffness of those pairs (fixed until the next ``forces``). ``active`` marks the skin vertices
+    pulled, ``within_fraction`` is the share of the depth points within ``reach``."""
+
+    def __init__(self, grid, skin_points, skin_faces, depth_points, k: float = 2.0, reach: float = DEPTH_REACH_MM,
+                 voxel: float = DEPTH_VOXEL_MM, candidates: int = 4):
+        self.map = TrilinearMapping(grid, skin_points)
+        self.faces = np.asarray(skin_faces, np.int64)
+        self.depth = voxel_downsample(np.asarray(depth_points, float), voxel)
+        self.k_point = float(k) * voxel ** 2 / SKIN_AREA_PER_SPRING_MM2
+        self.reference = float(reach)
+        self.candidates = int(candidates)
+        self.n_skin = len(skin_points)
+        # each vertex's faces, padded with its first (a face listed twice is only tried twice)
+        order = np.argsort(self.faces.ravel(), kind="stable")
+        vert = self.faces.ravel()[order]
+        start = np.searchsorted(vert, np.arange(self.n_skin))
+        count = np.bincount(vert, minlength=self.n_skin)
+        slot = np.minimum(np.arange(max(int(count.max()), 1))[None, :], np.maximum(count - 1, 0)[:, None])
+        self._vertex_faces = (order[np.minimum(start[:, None] + slot, len(order) - 1)] // 3)
+        self._pairs = (np.zeros((0, 3), np.int64), np.zeros((0, 3)), np.zeros((0, 3)))  # corners, weights, normals
+        self.active = np.zeros(self.n_skin, bool)
+        self.within_fraction = 0.0
+
+    def forces(self, x):
+        p = self.map.apply(x)
+        tri = p[self.faces]  # (F, 3, 3)
+        _, cand = cKDTree(tri.mean(axis=1)).query(self.depth, k=self.candidates)
+        _, nearest = cKDTree(p).query(self.depth)
+        cand = np.hstack([cand.reshape(len(self.depth), -1), self._vertex_faces[nearest]])
+        q = np.repeat(self.depth, cand.shape[1], axis=0)
+        c = trimesh.triangles.closest_point(tri[cand.ravel()], q).reshape(cand.shape + (3,))
+        d = np.linalg.norm(c - self.depth[:, None, :], axis=2)
+        best = d.argmin(axis=1)
+        rows = np.arange(len(self.depth))
+        near = d[rows, best] < self.reference
+        face = cand[rows, best][near]
+        corners = self.faces[face]
+        t = tri[face]
+        n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        w = trimesh.triangles.points_to_barycentric(t, c[rows, best][near])
+        self._pairs = (corners, w, n)
+        self.active = np.bincount(corners.ravel(), minlength=self.n_skin) > 0
+        self.within_fraction = float(near.mean()) if len(near) else 0.0
+        r = np.einsum("ij,ij->i", self.depth[near] - c[rows, best][near], n)  # along the face's normal
+        return self.map.apply_transpose(self._spread(self.k_point * r))
+
+    def _spread(self, s) -> np.ndarray:
+        """Point forces s n at each pair's surface point, onto the skin's vertices by the point's weights (S, 3)."""
+        corners, w, n = self._pairs
+        f = (w[:, :, None] * (s[:, None] * n)[:, None, :]).reshape(-1, 3)
+        idx = corners.ravel()
+        return np.column_stack([np.bincount(idx, weights=f[:, k], minlength=self.n_skin) for k in range(3)])
+
+    def apply(self, v):
+        corners, w, n = self._pairs
+        q = self.map.apply(v)
+        at = np.einsum("ij,ijk->ik", w, q[corners])  # the pairs' surface points moved by v
+        return self.map.apply_transpose(self._spread(self.k_point * np.einsum("ij,ij->i", at, n)))
+
+    def matrix(self):
+        corners, w, n = self._pairs
+        m = len(corners)
+        # C (m, 3 S): each pair's normal displacement n . sum_v w_v q_v; the stiffness is k C^T C through the map
+        rows = np.repeat(np.arange(m), 9)
+        cols = (3 * corners[:, :, None] + np.arange(3)[None, None, :]).ravel()
+        vals = (w[:, :, None] * n[:, None, :]).ravel()
+        C = sp.csr_matrix((vals, (rows, cols)), shape=(m, 3 * self.n_skin)) @ self.map.J3
+        return (self.k_point * (C.T @ C)).tocsr()

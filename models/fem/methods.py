@@ -25,7 +25,9 @@ sees a truth; :mod:`knee.models.evaluation` measures a reconstruction against on
   tibia's correction again from the shank's points so moved and moves the tibia there
   (``refine_on_posed_skin``, the default), slides the bones apart along the tibia's axis where they
   overlap more than at the scan, half the slide the femur's (with the cloud) and half the tibia's
-  (:func:`keep_bones_apart`, ``apart_share``), then runs the surface phase with the paper's two springs. The
+  (:func:`keep_bones_apart`, ``apart_share``), then runs the surface phase with springs from each depth point
+  to the nearest point of the skin (:class:`~knee.models.fem.forces.DepthPointForces`; the paper's springs run
+  from the skin to the points and pull a one-sided view's leg towards the camera, :data:`SURFACE_SPRINGS`). The
   femur's first placement is the thigh's registration, except along and about the thigh's axis, where the
   thigh's placement is weighed against the whole blended skin's by their jackknife spreads
   (:func:`place_along_thigh`; a near-cylindrical thigh under skin mismatch slides tens of mm).
@@ -69,7 +71,7 @@ from knee.foundations.surfaces import SurfaceQuery
 from knee.models.fem.anatomy import bone_clearance, bone_queries, in_contact
 from knee.models.fem.elements import HEX_CORNERS, hex_inverted
 from knee.models.fem.fields import DisplacementTethers, MappedAnchors, MappedSprings, affine_point_map
-from knee.models.fem.forces import SKIN_AREA_PER_SPRING_MM2, BoneForces, SurfaceForces, skin_point_areas
+from knee.models.fem.forces import SKIN_AREA_PER_SPRING_MM2, BoneForces, DepthPointForces, SurfaceForces, skin_point_areas
 from knee.models.fem.mapping import TrilinearMapping
 from knee.models.fem.scene import AssociationModel, bone_cell_masks, knee_angles
 from knee.models.mechanism.solver import Mechanism
@@ -1027,10 +1029,24 @@ def keep_bones_apart(model: AssociationModel, T_tibia) -> tuple[np.ndarray, np.n
     return out, out[:3, 3] - T[:3, 3]
 
 
+#: The surface phase's springs in methods (ii) and (iii): ``"from_points"``, each depth point to the nearest
+#: point of the skin's surface along its normal (:class:`knee.models.fem.forces.DepthPointForces`), or
+#: ``"from_skin"``, each skin vertex to its nearest depth point (the paper's, :class:`knee.models.fem.forces.
+#: SurfaceForces`, spread by skin area). On a one-sided view the skin's springs pull the leg towards the
+#: camera: over the surface phase the femur moved 0.5-0.8 mm towards it (median over the honest benchmark's
+#: five seeds, per placement of the camera; 0.1 mm or less with the points' springs), and (iii)'s footprints
+#: went from 1.47 mm before the phase to 1.69 mm after it at 0 mm skin mismatch (1.44 -> 1.45 mm with the
+#: points' springs). Over the five seeds (300 cases), skin -> points: (iii) 2.22 -> 2.09 mm at 0-1 mm
+#: mismatch, 4.04 -> 4.11 mm at 2 mm, 2.44 -> 2.40 mm over all, below (iv) in 279 -> 281 cases; the phantom
+#: 2.13 -> 1.89 mm at 0-1 mm, the Visible Human 2.42 -> 2.50 mm (BENCHMARKS.md).
+SURFACE_SPRING_KINDS = ("from_points", "from_skin")
+SURFACE_SPRINGS = "from_points"
+
+
 def prior_method(method: str, model: AssociationModel, prior: Mechanism, points, max_steps: int = 80,
                  femur_from: str = "thigh", refine_on_posed_skin: bool = True, flexion_skin: str = "blend",
                  weigh_axial: bool = True, apart_share: float | None = APART_FEMUR_SHARE, shank_skin: str = "fem",
-                 skin: SkinModel | None = None, **paper_options) -> Reconstruction:
+                 skin: SkinModel | None = None, surface_springs: str = SURFACE_SPRINGS, **paper_options) -> Reconstruction:
     """Methods (ii) ``"init"``, (iii) ``"links"`` and (iv) ``"kinematics"`` (and (i) ``"paper"``, for
     one entry point to all four) on a point cloud (P, 3), mm, world frame, with ``prior`` the (fitted)
     mechanism of the subject the model was built from. See the module docstring for the methods and
@@ -1051,10 +1067,12 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     ``flexion_skin``: how the flexion estimate poses a subject's skin, "blend" or "fem" (:func:`skin_model`).
     ``weigh_axial``: the thigh's placement along and about its axis weighed against the whole skin's by
     their jackknife spreads (:func:`place_along_thigh`); off: the thigh's kept as it is.
-    The surface phase's springs are spread by skin area (:data:`knee.models.fem.forces.SKIN_AREA_PER_SPRING_MM2`),
-    not one per vertex as in the paper's method: measured on lenhart2015's carried skin (a vertex per 12 mm^2,
-    its springs 3.6 times as stiff per mm^2 as the Visible Human's), (iii) 2.16 -> 1.94 mm at 0-1 mm skin
-    mismatch over five seeds (BENCHMARKS.md).
+    ``surface_springs`` (:data:`SURFACE_SPRING_KINDS`): the surface phase's springs, from each depth point to
+    the nearest point of the skin along its normal (``"from_points"``, :data:`SURFACE_SPRINGS`), or the paper's
+    from each skin vertex to its nearest depth point (``"from_skin"``). Either way they pull per mm^2 of skin
+    (:data:`knee.models.fem.forces.SKIN_AREA_PER_SPRING_MM2`), not one per vertex as in the paper's method:
+    measured on lenhart2015's carried skin (a vertex per 12 mm^2, its springs 3.6 times as stiff per mm^2 as
+    the Visible Human's), (iii) 2.16 -> 1.94 mm at 0-1 mm skin mismatch over five seeds (BENCHMARKS.md).
     ``apart_share``: where the placed bones overlap more than at the scan, they are slid apart along the
     tibia's axis (:func:`keep_bones_apart`) before the surface phase, the femur (with the cloud) taking
     this share of the slide (:data:`APART_FEMUR_SHARE`) and the tibia the rest; None: left as placed.
@@ -1071,6 +1089,9 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
         raise KneeInputError(f"apart_share must be between 0 and 1 (the femur's share of the slide), got {apart_share}")
     if shank_skin not in SHANK_SKINS:
         raise KneeInputError(f"the shank's skin must be one of {', '.join(SHANK_SKINS)}, got {shank_skin!r}")
+    if surface_springs not in SURFACE_SPRING_KINDS:
+        raise KneeInputError(f"the surface springs must be one of {', '.join(SURFACE_SPRING_KINDS)}, got "
+                             f"{surface_springs!r}")
     if method == "paper":
         return paper_method(model, points, **paper_options)
     model.reset()  # from the model as built, whatever ran on it before
@@ -1153,8 +1174,11 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
                 T_world = T_world @ small_pose(np.r_[np.zeros(3), -d])
                 steps += move_tibia(model, T_tib[None], settle=SMALL_MOVE_SETTLE)
             stages["apart"] = (T_world, T_tib)
-        surf = SurfaceForces(model.grid, model.skin_vertices, pts_model, k=2.0,
-                             weights=skin_point_areas(model.skin_vertices, model.skin_faces) / SKIN_AREA_PER_SPRING_MM2)
+        if surface_springs == "from_points":
+            surf = DepthPointForces(model.grid, model.skin_vertices, model.skin_faces, pts_model, k=2.0)
+        else:
+            surf = SurfaceForces(model.grid, model.skin_vertices, pts_model, k=2.0,
+                                 weights=skin_point_areas(model.skin_vertices, model.skin_faces) / SKIN_AREA_PER_SPRING_MM2)
         s.fields.append(surf)
         links = None
         if method == "links":
