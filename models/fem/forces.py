@@ -197,7 +197,8 @@ class DepthPointForces:
                  voxel: float = DEPTH_VOXEL_MM, candidates: int = 4):
         self.map = TrilinearMapping(grid, skin_points)
         self.faces = np.asarray(skin_faces, np.int64)
-        self.depth = voxel_downsample(np.asarray(depth_points, float), voxel)
+        self.depth = np.asarray(depth_points, float)  # the cloud as given
+        self.thinned = voxel_downsample(self.depth, voxel)  # the points that pull
         self.k_point = float(k) * voxel ** 2 / SKIN_AREA_PER_SPRING_MM2
         self.reference = float(reach)
         self.candidates = int(candidates)
@@ -216,14 +217,14 @@ class DepthPointForces:
     def forces(self, x):
         p = self.map.apply(x)
         tri = p[self.faces]  # (F, 3, 3)
-        _, cand = cKDTree(tri.mean(axis=1)).query(self.depth, k=self.candidates)
-        _, nearest = cKDTree(p).query(self.depth)
-        cand = np.hstack([cand.reshape(len(self.depth), -1), self._vertex_faces[nearest]])
-        q = np.repeat(self.depth, cand.shape[1], axis=0)
+        _, cand = cKDTree(tri.mean(axis=1)).query(self.thinned, k=self.candidates)
+        _, nearest = cKDTree(p).query(self.thinned)
+        cand = np.hstack([cand.reshape(len(self.thinned), -1), self._vertex_faces[nearest]])
+        q = np.repeat(self.thinned, cand.shape[1], axis=0)
         c = trimesh.triangles.closest_point(tri[cand.ravel()], q).reshape(cand.shape + (3,))
-        d = np.linalg.norm(c - self.depth[:, None, :], axis=2)
+        d = np.linalg.norm(c - self.thinned[:, None, :], axis=2)
         best = d.argmin(axis=1)
-        rows = np.arange(len(self.depth))
+        rows = np.arange(len(self.thinned))
         near = d[rows, best] < self.reference
         face = cand[rows, best][near]
         corners = self.faces[face]
@@ -234,7 +235,7 @@ class DepthPointForces:
         self._pairs = (corners, w, n)
         self.active = np.bincount(corners.ravel(), minlength=self.n_skin) > 0
         self.within_fraction = float(near.mean()) if len(near) else 0.0
-        r = np.einsum("ij,ij->i", self.depth[near] - c[rows, best][near], n)  # along the face's normal
+        r = np.einsum("ij,ij->i", self.thinned[near] - c[rows, best][near], n)  # along the face's normal
         return self.map.apply_transpose(self._spread(self.k_point * r))
 
     def _spread(self, s) -> np.ndarray:
