@@ -210,3 +210,18 @@ def test_depth_point_forces_pull_along_the_normals_by_the_area_each_point_stands
     dx = 1e-3 * p
     lin = -on.apply(dx)
     assert np.linalg.norm(on.forces(m.grid.X + dx) - lin) < 0.01 * np.linalg.norm(lin)
+
+
+def test_depth_point_forces_take_a_degenerate_face_without_failing(knee_model):
+    """A skin face collapsed to a line (as a segmented surface can hold): the points on it pull nothing (no
+    normal) and nothing becomes NaN."""
+    from knee.models.fem.forces import DepthPointForces
+
+    m = knee_model
+    v = m.skin_vertices.copy()
+    f = np.asarray(m.skin_faces)
+    a, b, c = f[0]
+    v[c] = 0.5 * (v[a] + v[b])  # the first face flattened onto its edge
+    cloud = np.vstack([v[f[:50]].mean(axis=1) + [0.5, 0.0, 0.0], 0.5 * (v[a] + v[b])])
+    forces = DepthPointForces(m.grid, v, f, cloud, k=2.0, voxel=0.5).forces(m.grid.X)
+    assert np.all(np.isfinite(forces))

@@ -231,7 +231,9 @@ class DepthPointForces:
         t = tri[face]
         n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        w = trimesh.triangles.points_to_barycentric(t, c[rows, best][near])
+        with np.errstate(divide="ignore", invalid="ignore"):  # a degenerate face gives NaN weights, replaced below
+            w = trimesh.triangles.points_to_barycentric(t, c[rows, best][near])
+        w = np.where(np.isfinite(w).all(axis=1, keepdims=True), w, 1.0 / 3.0)  # a degenerate face: its centre
         self._pairs = (corners, w, n)
         self.active = np.bincount(corners.ravel(), minlength=self.n_skin) > 0
         self.within_fraction = float(near.mean()) if len(near) else 0.0
