@@ -293,7 +293,8 @@ def test_a_synthetic_subjects_depth_frame_through_knee_fem(tmp_path):
         v = subject.ct[bone].vertices
         A, B = np.array(truth[f"T_camera_{bone}_ct"]), np.array(r[f"T_camera_{bone}_ct"])
         err = np.linalg.norm((v @ A[:3, :3].T + A[:3, 3]) - (v @ B[:3, :3].T + B[:3, 3]), axis=1)
-        assert np.median(err) < 3.0, (bone, np.median(err))  # measured 1.8 and 1.7 mm
+        assert np.median(err) < 3.0, (bone, np.median(err))  # measured 1.7 and 1.3 mm (1.8 and 1.7 before the
+        # surface phase's springs ran from the depth points)
     # the same frame as a depth camera returns it, with flying pixels along the leg's outline (blends of the
     # leg and a wall 300 mm behind it on half of a two-pixel band): they are left out, counted and shown
     # apart, and the result stays as good
