@@ -156,8 +156,8 @@ def _front_samples(m, n, seed=0):
 def test_depth_point_forces_do_not_pull_a_fitted_skin_towards_the_camera(knee_model):
     """A one-sided cloud lying on the skin (its faces turned towards a camera along +x): the paper's springs,
     skin to cloud, pull the skin behind the silhouette towards the silhouette's points, a net pull towards
-    the camera though the skin fits; the depth points' springs pull it hardly at all (what is left is the
-    skin's curvature between a point and its nearest vertex)."""
+    the camera though the skin fits; the depth points' springs, to the nearest point of the skin's surface,
+    pull it hardly at all (what is left: the 4 mm voxels average points of a curved skin to just inside it)."""
     from knee.models.fem.forces import SKIN_AREA_PER_SPRING_MM2, DepthPointForces, skin_point_areas
 
     m = knee_model

@@ -738,6 +738,8 @@ def test_the_shank_as_the_fem_posed_it_is_carried_by_the_tibia_and_corrects_it(v
         posed.at(math.radians(30.0))
     with pytest.raises(KneeInputError, match="one of fem, blend"):  # refused, not a fallback to the paper's method
         prior_method("links", model, volunteer, np.zeros((600, 3)), shank_skin="rigid")
+    with pytest.raises(KneeInputError, match="surface springs must be one of from_points, from_skin"):
+        prior_method("links", model, volunteer, np.zeros((600, 3)), surface_springs="both")
 
 
 def test_the_tibia_correction_weighs_points_that_err_together_as_few(volunteer):

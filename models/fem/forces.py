@@ -18,8 +18,8 @@
   surface, along its face's normal; the pull per mm^2 as :class:`SurfaceForces`' spread by area. On a one-sided view
   the skin-to-cloud springs pull the skin behind the silhouette, which no depth point shows, towards the
   silhouette's points, so the leg is drawn towards the camera (measured on the honest benchmark: the
-  femur 0.4-0.9 mm towards it over the surface phase); a depth point's nearest skin point is a point the
-  camera can have seen.
+  femur 0.5-0.8 mm towards it over the surface phase, median per camera placement); a depth point's
+  nearest skin point is a point the camera can have seen.
 Both act through the mapping (forces on embedded points -> grid forces by J^T); the surface forces also
 provide their stiffness (k J^T J over the active points) to the implicit solve.
 """

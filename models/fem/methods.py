@@ -1036,9 +1036,9 @@ def keep_bones_apart(model: AssociationModel, T_tibia) -> tuple[np.ndarray, np.n
 #: camera: over the surface phase the femur moved 0.5-0.8 mm towards it (median over the honest benchmark's
 #: five seeds, per placement of the camera; 0.1 mm or less with the points' springs), and (iii)'s footprints
 #: went from 1.47 mm before the phase to 1.69 mm after it at 0 mm skin mismatch (1.44 -> 1.45 mm with the
-#: points' springs). Over the five seeds (300 cases), skin -> points: (iii) 2.22 -> 2.09 mm at 0-1 mm
-#: mismatch, 4.04 -> 4.11 mm at 2 mm, 2.44 -> 2.40 mm over all, below (iv) in 279 -> 281 cases; the phantom
-#: 2.13 -> 1.89 mm at 0-1 mm, the Visible Human 2.42 -> 2.50 mm (BENCHMARKS.md).
+#: points' springs). Over the five seeds (300 cases, ``knee compare``), skin -> points: (iii) 2.21 -> 2.09 mm
+#: at 0-1 mm mismatch, 4.04 -> 4.10 mm at 2 mm, 2.45 -> 2.39 mm over all, below (iv) in 93 -> 94 % of the
+#: cases; the phantom 2.13 -> 1.90 mm at 0-1 mm, the Visible Human 2.42 -> 2.50 mm (BENCHMARKS.md).
 SURFACE_SPRING_KINDS = ("from_points", "from_skin")
 SURFACE_SPRINGS = "from_points"
 
