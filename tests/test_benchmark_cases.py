@@ -1009,6 +1009,22 @@ def test_compare_tables_read_back_and_pool_across_case_sets(tmp_path, capsys, ru
     assert run_script("pool_case_sets", [tmp_path / "a.csv", "--plot", tmp_path / "pooled.jpg"]) == 2
     _one_line_error(capsys, "give a .png file")
     assert not (tmp_path / "pooled.jpg").exists()
+    # one set's methods run apart, joined by +: the same pool as the set's one table; a Markdown table of it
+    write_csv([r for r in a if r.method != "kinematics"], tmp_path / "a_links.csv", extra=extra)
+    write_csv([r for r in a if r.method == "kinematics"], tmp_path / "a_kin.csv", extra=extra)
+    md = tmp_path / "pooled.md"
+    assert run_script("pool_case_sets", [f"{tmp_path / 'a_links.csv'}+{tmp_path / 'a_kin.csv'}", tmp_path / "b.csv",
+                                         "--table", md]) == 0
+    assert capsys.readouterr().out.split("## pooled")[1].split("table:")[0] == pooled
+    text = md.read_text()
+    # the phantom's measured family at 1 mm: (iii) on c1, c2 of the first set and c1 of the second; (i) failed once
+    assert f"| phantom | measured | 1 mm | (iii) links | 3 | 0 | {statistics.median([1.5, 2.5, 3.5]):.2f} |" in text
+    assert "| phantom | measured | 1 mm | (i) paper | 0 | 1 |" in text
+    assert run_script("pool_case_sets", [tmp_path / "a.csv", "--table", md]) == 2
+    _one_line_error(capsys, "exists; not overwritten")
+    # a set joined with a table that runs one of its methods again
+    assert run_script("pool_case_sets", [f"{tmp_path / 'a.csv'}+{tmp_path / 'a_kin.csv'}"]) == 2
+    _one_line_error(capsys, "has method kinematics twice")
     # bad input: a table twice, a file that is not a comparison table
     assert run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "a.csv"]) == 2
     _one_line_error(capsys, "given twice")
