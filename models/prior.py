@@ -887,7 +887,8 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
     if n < MIN_CORRECTION_POINTS:
         return TibiaCorrection(T_prior, np.zeros(6), n, float("nan"), float("nan"),
                                note=f"the shank is seen by {n} depth points (at least {MIN_CORRECTION_POINTS} "
-                                    "needed to correct the tibia's pose): the prior's pose is kept")
+                                    "needed to correct the tibia's pose): the prior's pose is kept, so the flexion is the "
+                                    "skin fit's alone and can be off by a few degrees")
     local = transform_points(invert_poses(T_prior @ D), pts[sel])
     c, nrm = shank.closest(local)
     after = float(np.sqrt(np.mean(np.einsum("ij,ij->i", local - c, nrm) ** 2)))

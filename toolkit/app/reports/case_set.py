@@ -172,7 +172,8 @@ def estimate_fit(rows, label: str = "(iii)") -> list[str]:
 
 
 #: What a run's notes say when the view cannot show the flexion (the flexion estimate's warnings, its fallback).
-UNSEEN_WARNINGS = ("shank is hardly seen", "too little of the shank", "hardly changes with flexion")
+UNSEEN_WARNINGS = ("shank is hardly seen", "too little of the shank", "hardly changes with flexion",
+                   "flexion is the skin fit's alone")
 
 
 def warned_unseen(row) -> bool:
