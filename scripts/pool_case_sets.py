@@ -48,12 +48,20 @@ def main() -> int:
     try:
         for g in groups:
             rows = [r for p in g for r in read_csv(p, CaseRow)]
-            seen = set()
+            seen, truth = set(), {}
             for r in rows:
                 if (r.case, r.method) in seen:
                     raise KneeInputError(f"{'+'.join(map(str, g))}: case {r.case} has method {r.method} twice; join only "
-                                    "tables of one set's other methods")
+                                         "tables of one set's other methods")
                 seen.add((r.case, r.method))
+                # the same case of another set (another seed) has other truth poses under the same id
+                t = truth.setdefault(r.case, r)
+                if abs(t.flexion_true_deg - r.flexion_true_deg) > 0.01 or min(t.shank_points_true, r.shank_points_true) >= 0 \
+                        and t.shank_points_true != r.shank_points_true:  # a failed run's count is unknown (-1)
+                    raise KneeInputError(f"{'+'.join(map(str, g))}: case {r.case} differs between the tables joined "
+                                         f"(true flexion {t.flexion_true_deg:g} / {r.flexion_true_deg:g} deg, shank "
+                                         f"points {t.shank_points_true} / {r.shank_points_true}): they are not one "
+                                         "case set's")
             sets.append(rows)
     except KneeError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -1025,6 +1025,11 @@ def test_compare_tables_read_back_and_pool_across_case_sets(tmp_path, capsys, ru
     # a set joined with a table that runs one of its methods again
     assert run_script("pool_case_sets", [f"{tmp_path / 'a.csv'}+{tmp_path / 'a_kin.csv'}"]) == 2
     _one_line_error(capsys, "has method kinematics twice")
+    # tables of two sets joined as one: the same case id with another truth
+    write_csv([dataclasses.replace(r, flexion_true_deg=31.0) for r in a if r.method == "kinematics"],
+              tmp_path / "other_kin.csv", extra=extra)
+    assert run_script("pool_case_sets", [f"{tmp_path / 'a_links.csv'}+{tmp_path / 'other_kin.csv'}"]) == 2
+    _one_line_error(capsys, "not one case set's")
     # bad input: a table twice, a file that is not a comparison table
     assert run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "a.csv"]) == 2
     _one_line_error(capsys, "given twice")
