@@ -225,3 +225,30 @@ def test_depth_point_forces_take_a_degenerate_face_without_failing(knee_model):
     cloud = np.vstack([v[f[:50]].mean(axis=1) + [0.5, 0.0, 0.0], 0.5 * (v[a] + v[b])])
     forces = DepthPointForces(m.grid, v, f, cloud, k=2.0, voxel=0.5).forces(m.grid.X)
     assert np.all(np.isfinite(forces))
+
+
+def test_depth_point_forces_pair_each_point_with_the_exact_nearest_point_of_the_skin(knee_model):
+    """Each depth point within reach is paired with the nearest point of the whole skin surface: its pair
+    (the corners weighed by its barycentric weights) lies as far from it as trimesh's exhaustive closest
+    point on the mesh, to single precision's tie-breaking (1e-3 mm); and exactly the points within the reach pull."""
+    import trimesh
+
+    from knee.models.fem.forces import DepthPointForces
+
+    m = knee_model
+    skin = trimesh.Trimesh(m.skin_vertices, m.skin_faces, process=False)
+    rng = np.random.default_rng(5)
+    cloud = _front_samples(m, 6000) + rng.normal(scale=4.0, size=(6000, 3))  # some beyond the 10 mm reach
+    f = DepthPointForces(m.grid, skin.vertices, skin.faces, cloud, k=2.0, voxel=4.0)
+    f.forces(m.grid.X)
+    corners, w, _ = f._pairs
+    paired = np.einsum("ij,ijk->ik", w, skin.vertices[corners])
+    # exhaustively: every point against every face (in chunks)
+    exact = np.concatenate([
+        np.linalg.norm(trimesh.triangles.closest_point(np.tile(skin.triangles, (len(q), 1, 1)),
+                                                        np.repeat(q, len(skin.faces), axis=0))
+                       .reshape(len(q), -1, 3) - q[:, None, :], axis=2).min(axis=1)
+        for q in np.array_split(f.thinned, max(1, len(f.thinned) // 20))])
+    near = exact < f.reference
+    assert 0 < near.sum() < len(near) and len(corners) == near.sum()
+    np.testing.assert_allclose(np.linalg.norm(f.thinned[near] - paired, axis=1), exact[near], atol=1e-3)

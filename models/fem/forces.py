@@ -13,14 +13,14 @@
   finely the skin is triangulated); the reference distance starts at
   10 mm and moves by 0.1 mm per step (down when more than half the skin points are within it, up
   otherwise), kept within 1-10 mm.
-
 * :class:`DepthPointForces` (the prior's methods): each depth point pulls the nearest point of the skin's
   surface, along its face's normal; the pull per mm^2 as :class:`SurfaceForces`' spread by area. On a one-sided view
   the skin-to-cloud springs pull the skin behind the silhouette, which no depth point shows, towards the
   silhouette's points, so the leg is drawn towards the camera (measured on the honest benchmark: the
   femur 0.5-0.8 mm towards it over the surface phase, median per camera placement); a depth point's
   nearest skin point is a point the camera can have seen.
-Both act through the mapping (forces on embedded points -> grid forces by J^T); the surface forces also
+
+All act through the mapping (forces on embedded points -> grid forces by J^T); the two surface springs also
 provide their stiffness (k J^T J over the active points) to the implicit solve.
 """
 
@@ -33,6 +33,7 @@ from scipy.spatial import cKDTree
 
 from knee.foundations.geometry import principal_axes as _principal_axes, rigid_register
 from knee.foundations.pointclouds import NearCloud, voxel_downsample
+from knee.foundations.surfaces import SurfaceQuery
 from knee.models.fem.mapping import TrilinearMapping
 
 PAPER_BONE_FORCES = (9000.0, 23000.0, 3000.0, 6000.0)
@@ -180,8 +181,8 @@ class DepthPointForces:
     The cloud is thinned to :data:`DEPTH_VOXEL_MM` voxels and each point's spring is ``k`` times the skin
     area it stands for over :data:`SKIN_AREA_PER_SPRING_MM2`, so that a skin seen all over is pulled per
     mm^2 as :class:`SurfaceForces` spread by area pulls it. Points further than ``reach`` mm from the skin
-    do not pull. The nearest face is sought among the faces of the skin vertex nearest the point and the
-    ``candidates`` faces whose centres lie nearest it.
+    do not pull. The nearest face is the exact one (:meth:`knee.foundations.surfaces.SurfaceQuery.closest_faces`
+    on the skin as the grid has it), the nearest point on it in double precision.
 
     The correspondence runs from the data to the model, as the camera sees: every depth point lies on skin
     the camera saw, while a skin point need not have been seen. :class:`SurfaceForces` (the paper's springs,
@@ -194,50 +195,34 @@ class DepthPointForces:
     pulled, ``within_fraction`` is the share of the depth points within ``reach``."""
 
     def __init__(self, grid, skin_points, skin_faces, depth_points, k: float = 2.0, reach: float = DEPTH_REACH_MM,
-                 voxel: float = DEPTH_VOXEL_MM, candidates: int = 4):
+                 voxel: float = DEPTH_VOXEL_MM):
         self.map = TrilinearMapping(grid, skin_points)
         self.faces = np.asarray(skin_faces, np.int64)
         self.depth = np.asarray(depth_points, float)  # the cloud as given
         self.thinned = voxel_downsample(self.depth, voxel)  # the points that pull
         self.k_point = float(k) * voxel ** 2 / SKIN_AREA_PER_SPRING_MM2
         self.reference = float(reach)
-        self.candidates = int(candidates)
         self.n_skin = len(skin_points)
-        # each vertex's faces, padded with its first (a face listed twice is only tried twice)
-        order = np.argsort(self.faces.ravel(), kind="stable")
-        vert = self.faces.ravel()[order]
-        start = np.searchsorted(vert, np.arange(self.n_skin))
-        count = np.bincount(vert, minlength=self.n_skin)
-        slot = np.minimum(np.arange(max(int(count.max()), 1))[None, :], np.maximum(count - 1, 0)[:, None])
-        self._vertex_faces = (order[np.minimum(start[:, None] + slot, len(order) - 1)] // 3)
         self._pairs = (np.zeros((0, 3), np.int64), np.zeros((0, 3)), np.zeros((0, 3)))  # corners, weights, normals
         self.active = np.zeros(self.n_skin, bool)
         self.within_fraction = 0.0
 
     def forces(self, x):
         p = self.map.apply(x)
-        tri = p[self.faces]  # (F, 3, 3)
-        _, cand = cKDTree(tri.mean(axis=1)).query(self.thinned, k=self.candidates)
-        _, nearest = cKDTree(p).query(self.thinned)
-        cand = np.hstack([cand.reshape(len(self.thinned), -1), self._vertex_faces[nearest]])
-        q = np.repeat(self.thinned, cand.shape[1], axis=0)
-        c = trimesh.triangles.closest_point(tri[cand.ravel()], q).reshape(cand.shape + (3,))
-        d = np.linalg.norm(c - self.thinned[:, None, :], axis=2)
-        best = d.argmin(axis=1)
-        rows = np.arange(len(self.thinned))
-        near = d[rows, best] < self.reference
-        face = cand[rows, best][near]
-        corners = self.faces[face]
-        t = tri[face]
+        face = SurfaceQuery(p, self.faces).closest_faces(self.thinned)
+        t = p[self.faces[face]]  # (P, 3, 3)
+        c = trimesh.triangles.closest_point(t, self.thinned)  # on the nearest face, in double precision
+        near = np.linalg.norm(c - self.thinned, axis=1) < self.reference
+        corners, t, c = self.faces[face[near]], t[near], c[near]
         n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         with np.errstate(divide="ignore", invalid="ignore"):  # a degenerate face gives NaN weights, replaced below
-            w = trimesh.triangles.points_to_barycentric(t, c[rows, best][near])
+            w = trimesh.triangles.points_to_barycentric(t, c)
         w = np.where(np.isfinite(w).all(axis=1, keepdims=True), w, 1.0 / 3.0)  # a degenerate face: its centre
         self._pairs = (corners, w, n)
         self.active = np.bincount(corners.ravel(), minlength=self.n_skin) > 0
         self.within_fraction = float(near.mean()) if len(near) else 0.0
-        r = np.einsum("ij,ij->i", self.thinned[near] - c[rows, best][near], n)  # along the face's normal
+        r = np.einsum("ij,ij->i", self.thinned[near] - c, n)  # along the face's normal
         return self.map.apply_transpose(self._spread(self.k_point * r))
 
     def _spread(self, s) -> np.ndarray:
