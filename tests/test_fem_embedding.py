@@ -66,6 +66,27 @@ def test_graded_grid_along_the_limb():
     np.testing.assert_allclose(m.apply(g.X @ A.T), pts @ A.T, atol=1e-9)
 
 
+def test_grid_offset_moves_the_same_cells():
+    """Another placement of the same discretisation: the cells across keep their size and move by the given
+    fraction of a cell (one more cell spans the skin), the joint grading's centre by that fraction of a joint
+    cell; the kept volume still matches the skin's. Catches an offset that rescales the cells or leaves the
+    grid where it was."""
+    from knee.foundations.errors import KneeInputError
+
+    skin = trimesh.creation.capsule(height=200.0, radius=50.0, count=[32, 32])
+    skin.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+    g0 = build_grid(skin, 7, 18.0, joint_y=0.0, joint_size=3.0)
+    g1 = build_grid(skin, 7, 18.0, joint_y=0.0, joint_size=3.0, offset=0.25)
+    for d in (0, 2):
+        h0, h1 = np.diff(g0.axes[d]), np.diff(g1.axes[d])
+        assert len(h1) == len(h0) + 1 and np.allclose(h1, h0[0])
+        assert g1.axes[d][0] == pytest.approx(g0.axes[d][0] - 0.25 * h0[0])
+    assert 0.75 in np.round(g1.axes[1], 9) and 0.0 in g0.axes[1]  # the joint line's node moved by 0.25 x 3 mm
+    assert (g1.cell_volumes * g1.weights).sum() == pytest.approx(skin.volume, rel=0.05)
+    with pytest.raises(KneeInputError, match="offset"):
+        build_grid(skin, 7, 18.0, offset=1.0)
+
+
 def test_tetrahedralize_a_sphere():
     s = trimesh.creation.icosphere(4, 60.0)
     X, T = tetrahedralize(s, 20.0)

@@ -101,15 +101,27 @@ def graded_axis(lo: float, hi: float, fine: float, coarse: float, centre: float,
 
 def build_grid(skin, n_across: int = 7, element_size: float | None = 12.0, n_along: int | None = None,
                margin: float = 1.0, joint_y: float | None = None, joint_size: float = 3.0,
-               joint_half_width: float = 15.0, growth: float = 1.3) -> SparseGrid:
-    """Build the sparse grid around a closed skin mesh (trimesh), see the module docstring."""
+               joint_half_width: float = 15.0, growth: float = 1.3, offset: float = 0.0) -> SparseGrid:
+    """Build the sparse grid around a closed skin mesh (trimesh), see the module docstring. ``offset``
+    (a fraction of a cell, in [0, 1)): the same cells moved by that fraction across x and z (so one more cell
+    spans each) and the joint line's grading by that fraction of ``joint_size``: another placement of the
+    same discretisation."""
     if n_across < 1:
         raise KneeInputError(f"n_across must be at least 1, got {n_across}")
+    if not 0.0 <= offset < 1.0:
+        raise KneeInputError(f"the grid's offset must be a fraction of a cell in [0, 1), got {offset}")
     skin = closed_surface(skin, "skin")
     lo = np.asarray(skin.bounds[0], float) - margin
     hi = np.asarray(skin.bounds[1], float) + margin
-    ax = np.linspace(lo[0], hi[0], n_across + 1)
-    az = np.linspace(lo[2], hi[2], n_across + 1)
+    if offset > 0.0:
+        h = (hi - lo) / n_across
+        ax = lo[0] - offset * h[0] + h[0] * np.arange(n_across + 2)
+        az = lo[2] - offset * h[2] + h[2] * np.arange(n_across + 2)
+        if joint_y is not None:
+            joint_y = joint_y + offset * joint_size
+    else:
+        ax = np.linspace(lo[0], hi[0], n_across + 1)
+        az = np.linspace(lo[2], hi[2], n_across + 1)
     if n_along is not None:
         if n_along < 1:
             raise KneeInputError(f"n_along must be at least 1, got {n_along}")

@@ -69,6 +69,7 @@ class FemSettings:
     rayleigh_mass: float = 0.1
     rayleigh_stiffness: float = 0.1
     bone_tets: tuple = (400, 700)
+    grid_offset: float = 0.0
 
 
 @dataclass
@@ -281,7 +282,7 @@ def build_knee_model(anatomy: KneeAnatomy, settings: FemSettings | None = None, 
     skin = closed_surface(anatomy.skin, "skin")
     joint_y, width = anatomy.joint_y, anatomy.width
     grid = build_grid(skin, s.n_across, s.element_size, s.n_along, joint_y=joint_y,
-                      joint_size=s.joint_size, joint_half_width=s.joint_half_width)
+                      joint_size=s.joint_size, joint_half_width=s.joint_half_width, offset=s.grid_offset)
     Xf, Tf, _ = tetrahedralize_to_count(anatomy.femur, s.bone_tets)
     Xt, Tt, _ = tetrahedralize_to_count(anatomy.tibia, s.bone_tets)
     femur = MappedBoneElasticity(grid, Xf, Tf, s.bone_E, s.bone_nu, name="femur")
