@@ -207,6 +207,32 @@ def hex_stiffness(X: np.ndarray, cells: np.ndarray, D: np.ndarray) -> np.ndarray
     return gradient_stiffness(dN, detJ, D)
 
 
+def hex_stiffness_incompatible(X: np.ndarray, cells: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """Linear stiffness (E, 24, 24) of hexahedra with Wilson's three incompatible modes (1 - xi_k^2 in each
+    displacement component) condensed out, their gradients taken with the Jacobian at the centre (Taylor's
+    correction, so that the element passes the patch test when distorted): a trilinear hexahedron bends
+    without the spurious shear of the 2x2x2 Gauss stiffness (:func:`hex_stiffness`), which makes coarse
+    cells too stiff in bending, and a rectangular one represents pure bending exactly. Rigid motions and
+    uniform strains give the same forces as :func:`hex_stiffness`."""
+    Xe = np.asarray(X, float)[cells]
+    dN, detJ = hex_gradients(Xe)                       # (E, 8, 8, 3), (E, 8)
+    J0 = np.einsum("ak,eaj->ekj", HEX_CORNERS / 8.0, Xe)  # the Jacobian at the centre: d x_j / d xi_k
+    det0 = det3(J0)
+    # d(1 - xi_k^2)/d xi = -2 xi_k e_k at the Gauss points, mapped by J0 and scaled by det J0 / det J
+    dP = np.zeros((8, 3, 3))
+    dP[:, [0, 1, 2], [0, 1, 2]] = -2.0 * _GAUSS
+    dPx = dP[None] @ np.swapaxes(np.linalg.inv(J0), 1, 2)[:, None]  # (E, 8, 3 modes, 3)
+    dPx = dPx * (det0[:, None] / detJ)[:, :, None, None]
+    K = gradient_stiffness(np.concatenate([dN, dPx], axis=2), detJ, D)  # (E, 33, 33)
+    Kuu, Kua, Kaa = K[:, :24, :24], K[:, :24, 24:], K[:, 24:, 24:]
+    Kc = Kuu - Kua @ np.linalg.solve(Kaa, np.swapaxes(Kua, 1, 2))
+    return 0.5 * (Kc + np.swapaxes(Kc, 1, 2))
+
+
+#: The hexahedra's stiffness by name (:class:`CorotationalElements`' ``hex_element``).
+HEX_ELEMENTS = {"trilinear": hex_stiffness, "incompatible": hex_stiffness_incompatible}
+
+
 def _frames(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Orthonormal frames (E, 3, 3), columns (x, y, z), from directions a and b by Gram-Schmidt."""
     x = a / np.sqrt(np.einsum("ij,ij->i", a, a))[:, None]
@@ -285,9 +311,16 @@ class CorotationalElements:
         Young's modulus (MPa) and Poisson's ratio.
     weights : (E,) float, optional
         Per-element stiffness factors (for example the fill fraction of boundary grid cells).
+    hex_element : str
+        The hexahedra's stiffness (:data:`HEX_ELEMENTS`): ``"trilinear"`` (2x2x2 Gauss,
+        :func:`hex_stiffness`, as the paper's) or ``"incompatible"`` (:func:`hex_stiffness_incompatible`).
     """
 
-    def __init__(self, X, cells, E, nu, weights=None):
+    def __init__(self, X, cells, E, nu, weights=None, hex_element: str = "trilinear"):
+        if hex_element not in HEX_ELEMENTS:
+            raise KneeInputError(f"the hexahedra's element must be one of {', '.join(HEX_ELEMENTS)}, got "
+                                 f"{hex_element!r}")
+        self._hex_stiffness = HEX_ELEMENTS[hex_element]
         self.X = np.asarray(X, dtype=float)
         self.cells = np.asarray(cells, dtype=np.int64)
         if self.cells.ndim != 2 or self.cells.shape[1] not in (4, 8):
@@ -298,7 +331,7 @@ class CorotationalElements:
         D = elasticity_matrix(E, nu)
         self._D = D
         self._w = np.ones(len(self.cells)) if weights is None else np.asarray(weights, float)
-        stiff = tet_stiffness if self.kind == "tet" else hex_stiffness
+        stiff = tet_stiffness if self.kind == "tet" else self._hex_stiffness
         self.K = stiff(self.X, self.cells, D)
         if weights is not None:
             self.K = self.K * self._w[:, None, None]
@@ -367,7 +400,7 @@ class CorotationalElements:
             ok = vol > 1e-9 * np.abs(vol).max()
         else:
             ok = ~hex_inverted(xe)
-        stiff = tet_stiffness if self.kind == "tet" else hex_stiffness
+        stiff = tet_stiffness if self.kind == "tet" else self._hex_stiffness
         K = self.K.copy()
         K[ok] = stiff(x, self.cells[ok], self._D) * self._w[ok, None, None]
         if drop_inverted:

@@ -53,10 +53,11 @@ def _apply_corot(el: CorotationalElements, pe: np.ndarray) -> np.ndarray:
 
 
 class GridElasticity:
-    """Co-rotational hexahedra of the soft-tissue grid (weights scale boundary cells)."""
+    """Co-rotational hexahedra of the soft-tissue grid (weights scale boundary cells; ``element``: their
+    stiffness, :data:`knee.models.fem.elements.HEX_ELEMENTS`)."""
 
-    def __init__(self, grid, E=1.0, nu=0.3):
-        self.el = CorotationalElements(grid.X, grid.cells, E, nu, weights=grid.weights)
+    def __init__(self, grid, E=1.0, nu=0.3, element: str = "trilinear"):
+        self.el = CorotationalElements(grid.X, grid.cells, E, nu, weights=grid.weights, hex_element=element)
         self.sc = _Scatter(grid.cells, grid.n_nodes)
         self.asm = PatternAssembler(grid.cells, grid.n_nodes)
 

@@ -49,7 +49,11 @@ class FemSettings:
     ``element_size`` along the limb, graded down to ``joint_size`` within ``joint_half_width`` of the joint
     line (``n_along`` instead gives a uniform grid, e.g. the paper's 300); ``shaft_length`` of the phantom
     bones; ``cartilage`` set-back of the articular surfaces; materials, collateral spring stiffness,
-    contact penalty and reach, time step and Rayleigh damping; ``bone_tets`` the target element count."""
+    contact penalty and reach, time step and Rayleigh damping; ``bone_tets`` the target element count;
+    ``grid_offset`` another placement of the same grid (:func:`knee.models.fem.grid.build_grid`'s
+    ``offset``); ``soft_element`` the tissue cells' stiffness (:data:`knee.models.fem.elements.HEX_ELEMENTS`:
+    the paper's ``"trilinear"``, or ``"incompatible"``, which bends without spurious shear). Both measured on
+    the honest benchmark and left at the paper's (BENCHMARKS.md)."""
 
     n_across: int = 7
     element_size: float = 18.0
@@ -70,6 +74,7 @@ class FemSettings:
     rayleigh_stiffness: float = 0.1
     bone_tets: tuple = (400, 700)
     grid_offset: float = 0.0
+    soft_element: str = "trilinear"
 
 
 @dataclass
@@ -287,7 +292,7 @@ def build_knee_model(anatomy: KneeAnatomy, settings: FemSettings | None = None, 
     Xt, Tt, _ = tetrahedralize_to_count(anatomy.tibia, s.bone_tets)
     femur = MappedBoneElasticity(grid, Xf, Tf, s.bone_E, s.bone_nu, name="femur")
     tibia = MappedBoneElasticity(grid, Xt, Tt, s.bone_E, s.bone_nu, name="tibia")
-    soft = GridElasticity(grid, s.soft_E, s.soft_nu)
+    soft = GridElasticity(grid, s.soft_E, s.soft_nu, s.soft_element)
     # collateral springs: along the insertions given; an LCL not given between the lateral surface points
     # whose distance varies least over the prior's motion (so the spring does not resist flexion)
     fv, tv = np.asarray(anatomy.femur.vertices), np.asarray(anatomy.tibia.vertices)
