@@ -17,6 +17,10 @@ Rotations:
   edges along the first local direction and of the four along the second, Gram-Schmidt, then
   ``R = F(x) F(X)^T``.
 
+Hexahedron stiffness: trilinear with 2x2x2 Gauss points (:func:`hex_stiffness`, the paper's), or with
+Wilson's incompatible bending modes condensed out (:func:`hex_stiffness_incompatible`), chosen by name
+(:data:`HEX_ELEMENTS`).
+
 Hexahedron node order (local coordinates in {-1, 1}^3):
 0 (-,-,-), 1 (+,-,-), 2 (+,+,-), 3 (-,+,-), 4 (-,-,+), 5 (+,-,+), 6 (+,+,+), 7 (-,+,+).
 """
