@@ -56,8 +56,10 @@ def main() -> int:
                 seen.add((r.case, r.method))
                 # the same case of another set (another seed) has other truth poses under the same id
                 t = truth.setdefault(r.case, r)
-                if abs(t.flexion_true_deg - r.flexion_true_deg) > 0.01 or min(t.shank_points_true, r.shank_points_true) >= 0 \
-                        and t.shank_points_true != r.shank_points_true:  # a failed run's count is unknown (-1)
+                # a failed run's shank count is unknown (-1): compared only where both tables know it
+                counts_known = min(t.shank_points_true, r.shank_points_true) >= 0
+                if abs(t.flexion_true_deg - r.flexion_true_deg) > 0.01 or (
+                        counts_known and t.shank_points_true != r.shank_points_true):
                     raise KneeInputError(f"{'+'.join(map(str, g))}: case {r.case} differs between the tables joined "
                                          f"(true flexion {t.flexion_true_deg:g} / {r.flexion_true_deg:g} deg, shank "
                                          f"points {t.shank_points_true} / {r.shank_points_true}): they are not one "

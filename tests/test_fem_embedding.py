@@ -87,6 +87,28 @@ def test_grid_offset_moves_the_same_cells():
         build_grid(skin, 7, 18.0, offset=1.0)
 
 
+def test_fem_settings_reach_the_grid_and_the_tissue_cells(volunteer):
+    """FemSettings' grid_offset and soft_element reach the model built: its grid is the offset one (one more
+    cell across, moved by the offset) and its tissue stiffness the named element's, computed independently
+    here from the grid; a bad element name is a clear input error, not a KeyError."""
+    from knee.foundations.errors import KneeInputError
+    from knee.models.fem.elements import hex_stiffness_incompatible
+    from knee.models.fem.material import elasticity_matrix
+    from knee.models.fem.scene import FemSettings, build_knee_model, phantom_anatomy
+
+    anatomy, ph = phantom_anatomy(volunteer)
+    base = build_knee_model(anatomy, prior=volunteer, phantom=ph)
+    m = build_knee_model(anatomy, FemSettings(grid_offset=0.5, soft_element="incompatible"), prior=volunteer,
+                         phantom=ph)
+    h = np.diff(base.grid.axes[0])[0]
+    assert len(m.grid.axes[0]) == len(base.grid.axes[0]) + 1
+    assert m.grid.axes[0][0] == pytest.approx(base.grid.axes[0][0] - 0.5 * h)
+    K = hex_stiffness_incompatible(m.grid.X, m.grid.cells, elasticity_matrix(1.0, 0.3)) * m.grid.weights[:, None, None]
+    np.testing.assert_allclose(m.soft.el.K, K, rtol=1e-12, atol=1e-12 * np.abs(K).max())
+    with pytest.raises(KneeInputError, match="hexahedra's element"):
+        build_knee_model(anatomy, FemSettings(soft_element="serendipity"), prior=volunteer, phantom=ph)
+
+
 def test_tetrahedralize_a_sphere():
     s = trimesh.creation.icosphere(4, 60.0)
     X, T = tetrahedralize(s, 20.0)
