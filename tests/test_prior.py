@@ -263,10 +263,9 @@ def test_the_tibia_correction_recovers_what_the_shank_shows(volunteer):
     # an added axial rotation moves no point of the capsule (a surface of revolution about that axis): the
     # points carry nothing about it, the prior's zero stays (to within 0.3 of the 5.7 deg turned: the
     # capsule's facets show a little of the turn) and the rest of the correction is the same (with the points'
-    # assumed sd: given the 0.5 mm their residuals show, the facets' little weighs ten times as much)
+    # assumed sd, the default: given the 0.5 mm their residuals show, the facets' little weighs ten times as much)
     twisted = _shank_points(volunteer, ph, alpha, small_pose(xi) @ small_pose(np.array([0, 0.1, 0, 0, 0, 0])))
-    c2 = correct_tibia(SkinModel(volunteer, ph), twisted, alpha, sigma_mm=100.0, sigma_deg=90.0, sigma_axial_deg=3.0,
-                       adapt_point_sd=False)
+    c2 = correct_tibia(SkinModel(volunteer, ph), twisted, alpha, sigma_mm=100.0, sigma_deg=90.0, sigma_axial_deg=3.0)
     assert abs(c2.rotation_deg[1]) < 0.3
     np.testing.assert_allclose(c2.rotation_deg[[0, 2]], c.rotation_deg[[0, 2]], atol=0.1)
     # a confident prior keeps the tibia where the mechanism has it
@@ -787,12 +786,13 @@ def test_the_tibia_correction_weighs_points_that_err_together_as_few(volunteer):
     assert np.linalg.norm(transform_points(moved.T, below) - transform_points(moved.T_prior @ small_pose(xi), below)) < 1.0
 
 
-def test_the_tibia_correction_takes_the_points_sd_from_its_residuals_below_the_bound(volunteer):
-    """Where the shank's skin fits its points closely, the correction gives them the sd their residuals show
-    (not below MIN_POINT_SD_MM, inflated for the error's correlation as before): its answer is the MAP
-    estimate with that sd, asked for directly, and nearer the tibia's true move than with the assumed 2 mm.
-    Where the residuals exceed the assumed sd, the answer is the assumed sd's. Catches an adaptation that does
-    nothing, that drops the inflation or the bound, or that raises the sd above POINT_SD_MM."""
+def test_the_tibia_correction_can_take_the_points_sd_from_its_residuals_below_the_bound(volunteer):
+    """With ``adapt_point_sd`` (an option), where the shank's skin fits its points closely the correction gives
+    them the sd their residuals show (not below MIN_POINT_SD_MM, inflated for the error's correlation as
+    before): its answer is the MAP estimate with that sd, asked for directly, and nearer the tibia's true move
+    than with the assumed 2 mm (the default's answer). Where the residuals exceed the assumed sd, the answer is
+    the assumed sd's. Catches an adaptation that does nothing, that drops the inflation or the bound, or that
+    raises the sd above POINT_SD_MM, and a default that adapts."""
     from knee.models.prior import MIN_POINT_SD_MM, correct_tibia, effective_point_sd, small_pose
 
     ph = build_phantom(volunteer.params)
@@ -800,8 +800,9 @@ def test_the_tibia_correction_takes_the_points_sd_from_its_residuals_below_the_b
     alpha = math.radians(60.0)
     xi = np.array([0.03, 0.0, -0.025, 1.5, -1.0, 2.0])
     exact = _shank_points(volunteer, ph, alpha, small_pose(xi))
-    adapted = correct_tibia(sk, exact, alpha)
-    fixed = correct_tibia(sk, exact, alpha, adapt_point_sd=False)
+    adapted = correct_tibia(sk, exact, alpha, adapt_point_sd=True)
+    fixed = correct_tibia(sk, exact, alpha)
+    np.testing.assert_array_equal(fixed.xi, correct_tibia(sk, exact, alpha, adapt_point_sd=False).xi)
     direct = correct_tibia(sk, exact, alpha, point_sd_mm=effective_point_sd(sk.width, MIN_POINT_SD_MM))
     assert adapted.rms_after < MIN_POINT_SD_MM  # exact points: the bound is what sets the sd
     np.testing.assert_allclose(adapted.xi, direct.xi, atol=2e-4)
@@ -809,7 +810,7 @@ def test_the_tibia_correction_takes_the_points_sd_from_its_residuals_below_the_b
     assert err(adapted) < 0.7 * err(fixed)
     # points noisier than the assumed sd: the assumed sd stays
     noisy = _shank_points(volunteer, ph, alpha, small_pose(xi), noise=3.0)
-    a, f = correct_tibia(sk, noisy, alpha), correct_tibia(sk, noisy, alpha, adapt_point_sd=False)
+    a, f = correct_tibia(sk, noisy, alpha, adapt_point_sd=True), correct_tibia(sk, noisy, alpha)
     assert a.rms_after > 2.0
     np.testing.assert_array_equal(a.xi, f.xi)
 
