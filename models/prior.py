@@ -877,8 +877,8 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
 
     def fit(xi, sd, first_wide):
         """Gauss-Newton from ``xi`` with each point's sd ``sd``; the first ``first_wide`` iterations in the
-        wide band. Returns xi, the points used in the last iteration (mask), their count and the RMS of each
-        iteration's residuals."""
+        wide band. Returns xi, the points used in the last iteration (mask), their count and the RMS of the
+        first iteration's residuals (nan when too few points were seen)."""
         D, rms, n, sel = small_pose(xi), [], 0, np.zeros(len(pts), bool)
         for it in range(iterations):
             wide = wide_band_mm is not None and it < first_wide
@@ -904,23 +904,25 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
             D = small_pose(xi)
             if np.abs(dxi).max() < 1e-5 and not wide:
                 break
-        return xi, sel, n, rms
+        return xi, sel, n, rms[0] if rms else float("nan")
 
     def residual_rms(xi, sel):
         local = transform_points(invert_poses(T_prior @ small_pose(xi)), pts[sel])
         c, nrm = shank.closest(local)
         return float(np.sqrt(np.mean(np.einsum("ij,ij->i", local - c, nrm) ** 2)))
 
-    xi, sel, n, rms = fit(np.zeros(6), point_sd_mm, wide_iterations)
+    xi, sel, n, before = fit(np.zeros(6), point_sd_mm, wide_iterations)
     if adapt and n >= MIN_CORRECTION_POINTS:
-        # the points' own sd, as far as their residuals show it, in place of the assumed one where smaller
+        # the points' own sd, as far as their residuals show it, in place of the assumed one where smaller; the
+        # fit goes on from where it converged (kept as it was should the narrow band then hold too few points)
         sd = min(POINT_SD_MM, max(residual_rms(xi, sel), MIN_POINT_SD_MM))
         if sd < POINT_SD_MM:
-            xi, sel, n, more = fit(xi, effective_point_sd(skin.width, sd), 0)
-            rms = rms[:1] + more
+            xi2, sel2, n2, _ = fit(xi, effective_point_sd(skin.width, sd), 0)
+            if n2 >= MIN_CORRECTION_POINTS:
+                xi, sel, n = xi2, sel2, n2
     if n < MIN_CORRECTION_POINTS:
         return TibiaCorrection(T_prior, np.zeros(6), n, float("nan"), float("nan"),
                                note=f"the shank is seen by {n} depth points (at least {MIN_CORRECTION_POINTS} "
                                     "needed to correct the tibia's pose): the prior's pose is kept, so the flexion is the "
                                     "skin fit's alone and can be off by a few degrees")
-    return TibiaCorrection(T_prior, xi, n, rms[0], residual_rms(xi, sel))
+    return TibiaCorrection(T_prior, xi, n, before, residual_rms(xi, sel))

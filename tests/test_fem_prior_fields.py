@@ -778,3 +778,27 @@ def test_the_thigh_is_registered_with_a_subsample_of_its_seen_points(model, monk
     rms = lambda A: float(np.sqrt(np.mean(np.sum((transform_points(A @ T_off, thigh) - thigh) ** 2, axis=1))))
     assert fitness > 0.9 and rms(T) < 0.5, rms(T)
     assert float(np.abs(transform_points(T, thigh) - transform_points(T_all, thigh)).max()) < 0.3
+
+
+def test_the_residual_weighed_shank_option_reaches_both_tibia_corrections(volunteer, monkeypatch):
+    """prior_method's adapt_point_sd goes to both of the tibia's corrections (on the flexion estimate's shank
+    and on the FEM-posed one) and is off by default; catches an option dropped on its way, or one correction
+    left out of it."""
+    import knee.models.fem.methods as fm
+    from knee.app.experiments.cases import case_points
+    from knee.models.fem.depth import default_camera
+
+    pts, _ = case_points(volunteer, 60.0, default_camera(), None)
+    monkeypatch.setattr(fm, "surface_phase", lambda model_, surf, max_steps, steps: (steps, False))
+    real, asked = fm.correct_tibia, []
+
+    def recorded(*a, **kw):
+        asked.append(kw.get("adapt_point_sd"))
+        return real(*a, **kw)
+
+    monkeypatch.setattr(fm, "correct_tibia", recorded)
+    fm.prior_method("init", build_association_model(volunteer), volunteer, pts)
+    assert asked == [False, False]
+    asked.clear()
+    fm.prior_method("init", build_association_model(volunteer), volunteer, pts, adapt_point_sd=True)
+    assert asked == [True, True]

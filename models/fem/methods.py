@@ -1046,7 +1046,8 @@ SURFACE_SPRINGS = "from_points"
 def prior_method(method: str, model: AssociationModel, prior: Mechanism, points, max_steps: int = 80,
                  femur_from: str = "thigh", refine_on_posed_skin: bool = True, flexion_skin: str = "blend",
                  weigh_axial: bool = True, apart_share: float | None = APART_FEMUR_SHARE, shank_skin: str = "fem",
-                 skin: SkinModel | None = None, surface_springs: str = SURFACE_SPRINGS, **paper_options) -> Reconstruction:
+                 skin: SkinModel | None = None, surface_springs: str = SURFACE_SPRINGS, adapt_point_sd: bool = False,
+                 **paper_options) -> Reconstruction:
     """Methods (ii) ``"init"``, (iii) ``"links"`` and (iv) ``"kinematics"`` (and (i) ``"paper"``, for
     one entry point to all four) on a point cloud (P, 3), mm, world frame, with ``prior`` the (fitted)
     mechanism of the subject the model was built from. See the module docstring for the methods and
@@ -1081,7 +1082,10 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     flexion estimate carries it rigidly ("blend"). Measured on the honest benchmark (BENCHMARKS.md).
     ``skin``: the flexion estimate's skin model when already built (:func:`skin_model` of this model, prior
     and ``flexion_skin``, as :func:`reconstruct_in_camera` builds it for the rough registration), so that its
-    set-up and the angles it has posed are not made again."""
+    set-up and the angles it has posed are not made again.
+    ``adapt_point_sd``: both of the tibia's corrections take the shank points' sd from their own residuals where
+    below the assumed 2 mm (:func:`knee.models.prior.correct_tibia`'s option; off: measured better on the
+    phantom and the Visible Human, worse on lenhart2015's bones under a carried skin, BENCHMARKS.md)."""
     if method not in METHODS:
         raise KneeInputError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     _check_flexion_skin(flexion_skin)  # here, not as a failed estimate that falls back to the paper's method
@@ -1135,7 +1139,7 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
         raise KneeInputError(f"femur_from must be 'thigh' or 'knee', got {femur_from!r}")
     stages = {"estimate": (est.T_world_model, tibia_path(prior, model, est.flexion)[0])}
     # the tibia off the prior's path as far as the shank's points show
-    corr = correct_tibia(est.skin, pts_model, est.flexion)
+    corr = correct_tibia(est.skin, pts_model, est.flexion, adapt_point_sd=adapt_point_sd)
     stages["placed"] = (T_world, corr.T)
     s = model.solver
     with quasi_static(s):
@@ -1149,7 +1153,7 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
                 pts_model = transform_points(T_fix, pts_model)
                 T_world = T_world @ invert_poses(T_fix)
                 shank = fem_posed_shank(model, est.skin, est.flexion, corr.T) if shank_skin == "fem" else est.skin
-                again = correct_tibia(shank, pts_model, est.flexion)
+                again = correct_tibia(shank, pts_model, est.flexion, adapt_point_sd=adapt_point_sd)
                 if again.applied:
                     corr = again
                     steps += move_tibia(model, corr.T[None], settle=SMALL_MOVE_SETTLE)
