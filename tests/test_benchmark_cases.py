@@ -271,19 +271,32 @@ def test_stage_errors_compose_each_stages_bones_in_the_cameras_frame(small_case_
     shift[:3, 3] = [1.0, 2.0, -3.0]
     turn = np.eye(4)
     turn[:3, :3] = Rotation.from_rotvec([0.0, 0.0, math.radians(2.0)]).as_matrix()
+    # a third stage: the femur turned 1.5 deg about its medio-lateral axis (its frame's z), the tibia left
+    # where the truth has it in the camera
+    tilt = np.eye(4)
+    tilt[:3, :3] = Rotation.from_rotvec([0.0, 0.0, math.radians(1.5)]).as_matrix()
     recon = Reconstruction("links", 40.0, 0, 0.0, True, Tw,
-                           stages={"posed_skin": (Tw, rel), "estimate": (Tw @ shift, rel @ turn)})
+                           stages={"posed_skin": (Tw, rel), "estimate": (Tw @ shift, rel @ turn),
+                                   "placed": (Tw @ tilt, invert_poses(tilt) @ rel)})
     T_tib = anatomy.tibia_pose
     errs = camera_stage_errors(anatomy, prior, recon, T_cam_world, T_cam_world @ Tw,
                                T_cam_world @ Tw @ rel @ invert_poses(T_tib))
-    assert [e.stage for e in errs] == ["estimate", "posed_skin"]  # the stages' order, not the dict's
-    est, posed = errs
+    assert [e.stage for e in errs] == ["estimate", "placed", "posed_skin"]  # the stages' order, not the dict's
+    est, placed, posed = errs
     assert posed.footprints_mm < 1e-9
-    np.testing.assert_allclose(np.r_[posed.femur_rotation_deg, posed.femur_translation_mm, posed.relative_rotation_deg],
-                               0.0, atol=1e-9)
+    np.testing.assert_allclose(np.r_[posed.femur_rotation_deg, posed.femur_translation_mm, posed.relative_rotation_deg,
+                                     posed.tibia_rotation_deg], 0.0, atol=1e-9)
     np.testing.assert_allclose(est.femur_translation_mm, [1.0, 2.0, -3.0], atol=1e-9)
     np.testing.assert_allclose(est.femur_rotation_deg, 0.0, atol=1e-9)
     np.testing.assert_allclose(est.relative_rotation_deg, [0.0, 0.0, 2.0], atol=1e-9)
+    # the femur exact: the tibia's own error is its error relative to the femur
+    np.testing.assert_allclose(est.tibia_rotation_deg, est.relative_rotation_deg, atol=1e-9)
+    # the femur's tilt alone: the tibia has no error of its own, its error relative to the femur is the tilt
+    # undone (a turn of 1.5 deg), and the flexion reads more by about the tilt
+    np.testing.assert_allclose(placed.femur_rotation_deg, [0.0, 0.0, 1.5], atol=1e-9)
+    np.testing.assert_allclose(placed.tibia_rotation_deg, 0.0, atol=1e-9)
+    assert abs(np.linalg.norm(placed.relative_rotation_deg) - 1.5) < 1e-9 and placed.relative_rotation_deg[2] < -1.4
+    assert abs(placed.flexion_deg - posed.flexion_deg - 1.5) < 0.1
     assert abs(est.flexion_deg - posed.flexion_deg) > 1.0  # the turn about the tibia's z changes the flexion
     assert est.femur_footprints_mm > 1.0 and est.tibia_footprints_mm > 1.0
 
@@ -303,6 +316,52 @@ def test_diagnosis_ends_with_the_compared_bones(small_case_set):
     assert abs(stages[-1].tibia_footprints_mm - row.tibia_footprints_mm) < 1e-9
     with pytest.raises(KneeInputError, match="have stages"):
         diagnose_case_set(small_case_set, "kinematics")
+
+
+def test_diagnosis_tables_pool_csvs_and_split_the_flexion_by_view(tmp_path, capsys, run_script):
+    """``diagnose_case_set.py --from-csv`` pools stored tables: a case id met in two tables is two views, a
+    view that does not see the shank is left out of the flexion's split, and a miss is the femur's when its
+    tilt (about the medio-lateral axis) is the larger of the two bones'. Bad input: one line each."""
+    from knee.foundations.files import write_records
+    from knee.models.prior import MIN_SEEN_SHANK
+
+    def rec(case, stage, femur_z=0.0, tibia_z=0.0, err=0.0, anatomy="visible-human-male", camera="paper", mm=1.0,
+            seen=MIN_SEEN_SHANK):
+        r = {"case": case, "anatomy": anatomy, "family": "measured", "camera": camera, "stage": stage,
+             "mismatch_mm": mm, "shank_points_true": seen, "flexion_true_deg": 45.0, "femur_footprints_mm": 2.0,
+             "tibia_footprints_mm": 3.0, "footprints_mm": 2.5, "flexion_deg": 45.0 + err}
+        for k in ("femur_rotation", "femur_translation", "relative_rotation", "tibia_rotation"):
+            for a in "xyz":
+                r[f"{k}_{a}_{'mm' if k == 'femur_translation' else 'deg'}"] = 0.0
+        r["femur_rotation_z_deg"], r["tibia_rotation_z_deg"] = femur_z, tibia_z
+        return r
+
+    def case(name, thigh, posed, femur_z, tibia_z, err, **kw):
+        return [rec(name, "placed", thigh, **kw), rec(name, "posed_skin", posed, **kw),
+                rec(name, "final", femur_z, tibia_z, err, **kw)]
+
+    a = tmp_path / "a.csv"
+    b = tmp_path / "b.csv"
+    write_records(a, case("c1", 0.5, 1.0, 3.0, 0.5, 2.5) + case("c2", -0.3, 0.4, 0.2, -2.5, -2.7)
+                  + case("c3", 0.1, 0.1, 0.1, 0.1, 9.0, anatomy="phantom", camera="lateral", mm=2.0,
+                         seen=MIN_SEEN_SHANK - 1))
+    write_records(b, case("c1", 0.7, -0.2, -0.1, 0.2, 0.3))
+    assert run_script("diagnose_case_set", ["--from-csv", a, b]) == 0
+    out = capsys.readouterr().out
+    # c1 of both tables and c2: the flexion within 2 deg in one of three views; the signed error's median
+    # +0.3; the femur's tilt (absolute) after the thigh 0.5, 0.3, 0.7, after the posed skin 1.0, 0.4, 0.2,
+    # at the end 3.0, 0.2, 0.1; the tibia's 0.5, 2.5, 0.2; c1's miss is the femur's, c2's the tibia's
+    assert "| visible-human-male | paper | 1 mm | 3 | 1 | +0.30 | 0.50 / 0.40 / 0.20 | 0.50 | 1 of 2 |" in out
+    assert "| phantom |" not in out.split("| anatomy | camera |")[1]  # its one view does not see the shank
+    assert "| final | 2.50 (2.00 / 3.00) | 2.50 (2.00 / 3.00) | 2.50 (2.00 / 3.00) | 1 of 3 |" in out
+    # bad input
+    bad = tmp_path / "bad.csv"
+    bad.write_text("case,stage\nc1,final\n")
+    for argv, says in [(["--from-csv", bad], "is not a diagnosis table"),
+                       (["--from-csv", tmp_path / "none.csv"], "is not a file"),
+                       ([tmp_path, "--from-csv", a], "not both"), ([], "or --from-csv")]:
+        assert run_script("diagnose_case_set", argv) == 2
+        _one_line_error(capsys, says)
 
 
 @pytest.mark.parametrize("script, selects_none", [("diagnose_case_set", "no case of"),

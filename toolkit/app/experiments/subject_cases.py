@@ -106,8 +106,11 @@ class StageError:
     """Where one stage of methods (ii)/(iii) put the bones, against the truth: the mean footprint errors
     (mm; femur, tibia), the stage's flexion (deg; the Cardan flexion of the tibia relative to the femur),
     the femur's error as a rotation vector (deg) and a translation at the knee's centre (mm; on the femur's
-    axis at the joint line), both in the true femur's frame, and the tibia's error relative to the femur as
-    a rotation vector (deg) in the true tibia's frame (its z: the flexion's error, with the sign reversed)."""
+    axis at the joint line), both in the true femur's frame, the tibia's error relative to the femur as a
+    rotation vector (deg) in the true tibia's frame (its z: the flexion's error, with the sign reversed), and
+    the tibia's own error as a rotation vector (deg) in the true tibia's frame. About the medio-lateral axis
+    (z) the flexion's error is about the femur's z less the tibia's: which bone's tilt a flexion error comes
+    from."""
 
     stage: str
     femur_footprints_mm: float
@@ -116,6 +119,7 @@ class StageError:
     femur_rotation_deg: np.ndarray
     femur_translation_mm: np.ndarray
     relative_rotation_deg: np.ndarray
+    tibia_rotation_deg: np.ndarray
 
     @property
     def footprints_mm(self) -> float:
@@ -145,11 +149,13 @@ def camera_stage_errors(anatomy: KneeAnatomy, prior: Mechanism, recon, T_cam_wor
         Ef = invert_poses(T_cam_femur) @ Tf
         rel = invert_poses(Tf) @ Tt @ T_tib
         Er = invert_poses(rel_true) @ rel
+        Et = invert_poses(T_cam_tibia @ T_tib) @ Tt @ T_tib
         out.append(StageError(name, e.femur.footprints.mean, e.tibia.footprints.mean,
                               float(np.degrees(matrix_to_cardan(rel[:3, :3])[0])),
                               np.degrees(Rotation.from_matrix(Ef[:3, :3]).as_rotvec()),
                               Ef[:3, :3] @ centre + Ef[:3, 3] - centre,
-                              np.degrees(Rotation.from_matrix(Er[:3, :3]).as_rotvec())))
+                              np.degrees(Rotation.from_matrix(Er[:3, :3]).as_rotvec()),
+                              np.degrees(Rotation.from_matrix(Et[:3, :3]).as_rotvec())))
     return out
 
 
