@@ -879,7 +879,7 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
         """Gauss-Newton from ``xi`` with each point's sd ``sd``; the first ``first_wide`` iterations in the
         wide band. Returns xi, the points used in the last iteration (mask), their count and the RMS of the
         first iteration's residuals (nan when too few points were seen)."""
-        D, rms, n, sel = small_pose(xi), [], 0, np.zeros(len(pts), bool)
+        D, first, n, sel = small_pose(xi), float("nan"), 0, np.zeros(len(pts), bool)
         for it in range(iterations):
             wide = wide_band_mm is not None and it < first_wide
             band = wide_band_mm if wide else band_mm
@@ -892,7 +892,8 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
             p = local[sel]
             c, nrm = shank.closest(p)
             r = np.einsum("ij,ij->i", p - c, nrm)
-            rms.append(float(np.sqrt(np.mean(r ** 2))))
+            if it == 0:
+                first = float(np.sqrt(np.mean(r ** 2)))
             # a change dxi of the rotation vector turns the tibia by dw = J_r(xi) dxi in its current frame (the
             # rotation's right Jacobian) and one of the translation moves it by R^T dt there: a point, in the
             # tibia's current frame, moves by -(dw x p) - R^T dt
@@ -904,7 +905,7 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
             D = small_pose(xi)
             if np.abs(dxi).max() < 1e-5 and not wide:
                 break
-        return xi, sel, n, rms[0] if rms else float("nan")
+        return xi, sel, n, first
 
     def residual_rms(xi, sel):
         local = transform_points(invert_poses(T_prior @ small_pose(xi)), pts[sel])

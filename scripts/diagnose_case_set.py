@@ -56,20 +56,23 @@ def read_rows(paths) -> list[dict]:
         path = Path(path)
         if not path.is_file():
             raise KneeInputError(f"{path} is not a file")
-        with open(path, newline="", encoding="utf-8") as fh:
-            reader = csv.DictReader(fh)
-            missing = [c for c in (*TEXT, *NUMBERS) if c not in (reader.fieldnames or [])]
-            if missing:
-                raise KneeInputError(f"{path} is not a diagnosis table (no column {missing[0]}); write one with "
-                                     "--csv")
-            for r in reader:
-                try:
-                    rec = {**{k: r[k] for k in TEXT}, **{k: float(r[k]) for k in NUMBERS}}
-                except ValueError as e:
-                    raise KneeInputError(f"{path}: a row of case {r['case']} has a value that is not a number "
-                                         f"({e})") from None
-                rec["key"] = (i, rec["case"])
-                records.append(rec)
+        try:
+            with open(path, newline="", encoding="utf-8") as fh:
+                reader = csv.DictReader(fh)
+                fields, table = reader.fieldnames or [], list(reader)
+        except (OSError, UnicodeDecodeError, csv.Error) as e:
+            raise KneeInputError(f"{path}: cannot read it as a CSV ({e})") from None
+        missing = [c for c in (*TEXT, *NUMBERS) if c not in fields]
+        if missing:
+            raise KneeInputError(f"{path} is not a diagnosis table (no column {missing[0]}); write one with --csv")
+        for r in table:
+            try:
+                rec = {**{k: r[k] for k in TEXT}, **{k: float(r[k]) for k in NUMBERS}}
+            except (TypeError, ValueError) as e:
+                raise KneeInputError(f"{path}: a row of case {r['case']} has a value that is not a number "
+                                     f"({e})") from None
+            rec["key"] = (i, rec["case"])
+            records.append(rec)
     return records
 
 

@@ -357,7 +357,13 @@ def test_diagnosis_tables_pool_csvs_and_split_the_flexion_by_view(tmp_path, caps
     # bad input
     bad = tmp_path / "bad.csv"
     bad.write_text("case,stage\nc1,final\n")
+    binary = tmp_path / "binary.csv"
+    binary.write_bytes(b"\xff\xfe\x00\x81 not text")
+    short = tmp_path / "short.csv"
+    short.write_text(a.read_text().splitlines()[0] + "\nc1,visible-human-male\n")
     for argv, says in [(["--from-csv", bad], "is not a diagnosis table"),
+                       (["--from-csv", binary], "cannot read it as a CSV"),
+                       (["--from-csv", a, short], "has a value that is not a number"),
                        (["--from-csv", tmp_path / "none.csv"], "is not a file"),
                        ([tmp_path, "--from-csv", a], "not both"), ([], "or --from-csv")]:
         assert run_script("diagnose_case_set", argv) == 2
