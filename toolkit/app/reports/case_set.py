@@ -303,6 +303,40 @@ def plot_floor(floors, errors: dict, path, label: str = "(iii) links") -> None:
     plt.close(fig)
 
 
+def plot_flexion_floor(floors, errors: dict, path, label: str = "(iii) links",
+                       min_seen: int = MIN_SEEN_SHANK) -> None:
+    """A method's signed flexion error per view (``errors``: {case: deg}) against what the model's own skin
+    reads with every other step exact (:func:`knee.app.experiments.skin_floor.tissue_floor`'s rows: the femur's
+    floor with the tibia's on the FEM-posed shank), over the views that see the shank, one marker per camera
+    and a colour per anatomy; the shaded band is the flexion target's 2 deg either side. A miss outside the
+    band on both axes is one the model's skin makes too; one outside it only upwards or downwards is the
+    method's own."""
+    fig, ax = plt.subplots(figsize=(5.6, 5.0))
+    seen = [f for f in floors if f.shank_points_true >= min_seen and f.case in errors]
+    lim = max([4.0, *(abs(f.flexion_error_deg) for f in seen), *(abs(errors[f.case]) for f in seen)]) * 1.1
+    ax.axhspan(-2.0, 2.0, color="tab:green", alpha=0.12, lw=0)
+    ax.axvspan(-2.0, 2.0, color="tab:green", alpha=0.12, lw=0)
+    markers = {"paper": "o", "frontal": "s", "lateral": "^"}
+    anatomies = sorted({f.anatomy for f in seen})
+    colours = dict(zip(anatomies, ("tab:blue", "tab:red", "tab:purple", "tab:orange", "tab:gray")))
+    for a in anatomies:
+        for cam in sorted({f.camera for f in seen if f.anatomy == a}):
+            g = [f for f in seen if f.anatomy == a and f.camera == cam]
+            ax.scatter([f.flexion_error_deg for f in g], [errors[f.case] for f in g], s=20, alpha=0.8,
+                       color=colours[a], marker=markers.get(cam, "D"), label=f"{a}, {cam}")
+    ax.plot([-lim, lim], [-lim, lim], color="k", lw=1, ls=":")
+    ax.set_xlim(-lim, lim)
+    ax.set_ylim(-lim, lim)
+    ax.set_xlabel("the model's own skin, every other step exact: flexion error (deg)")
+    ax.set_ylabel(f"{label} flexion error (deg)")
+    ax.set_title("Flexion error against what the model's skin reads", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 class CaseSetRecorder:
     """``on_result`` callback of :func:`knee.app.experiments.case_set.run_case_set` writing the recording
     (layout: the module docstring). Each bone's mesh is logged when its anatomy's first case comes (and
