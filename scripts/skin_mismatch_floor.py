@@ -67,9 +67,10 @@ def main() -> int:
     ap.add_argument("--csv", default=None, help="write a row per case here")
     ap.add_argument("--plot", default=None, help="with --compare: (iii)'s error against the floors, a PNG here")
     ap.add_argument("--tissue", action="store_true",
-                    help="also the tissue's floor at 0 mm: the femur placed on the association model's skin posed "
-                         "with the true bones (about 1 s per case)")
-    ap.add_argument("--tissue-mismatches", default="0",
+                    help="also the tissue's floors (at 0 mm unless --tissue-mismatches): the femur placed on the "
+                         "association model's skin posed with the true bones, the tibia on its shank, and the flexion "
+                         "each reads (about 1 s per case)")
+    ap.add_argument("--tissue-mismatches", default=None,
                     help="with --tissue: the skin mismatches (mm, comma-separated) to measure the tissue's floors at "
                          "(default 0; e.g. 0,1,2 takes in the other cameras' views, which are at 1 mm)")
     ap.add_argument("--tissue-plot", default=None,
@@ -81,8 +82,11 @@ def main() -> int:
     from knee.app.experiments.skin_floor import skin_floor
     from knee.foundations.errors import KneeError, KneeInputError
 
+    if (args.tissue_mismatches is not None or args.tissue_plot) and not args.tissue:
+        print("error: --tissue-mismatches and --tissue-plot go with --tissue (the tissue's floors)", file=sys.stderr)
+        return 2
     try:
-        tissue_mismatches = [float(m) for m in args.tissue_mismatches.split(",") if m.strip()]
+        tissue_mismatches = [float(m) for m in (args.tissue_mismatches or "0").split(",") if m.strip()]
     except ValueError:
         tissue_mismatches = []
     if not tissue_mismatches or any(not m >= 0.0 for m in tissue_mismatches):

@@ -969,6 +969,9 @@ def test_skin_floor_on_the_case_set_and_its_script(small_case_set, tmp_path, cap
                        ([small_case_set, "--tissue", "--tissue-mismatches", "one"], "--tissue-mismatches must be"),
                        ([small_case_set, "--tissue", "--tissue-mismatches", "3"], "no case at 3 mm"),
                        ([small_case_set, "--compare", compare, "--tissue-plot", tmp_path / "f.png"],
+                        "go with --tissue"),
+                       ([small_case_set, "--tissue-mismatches", "1"], "go with --tissue"),
+                       ([small_case_set, "--tissue", "--tissue-plot", tmp_path / "f.png"],
                         "--tissue-plot needs --tissue and --compare"),
                        ([small_case_set, "--compare", no_flexion, "--tissue", "--tissue-plot", tmp_path / "f.png"],
                         "no flexion of method")):
