@@ -1051,12 +1051,13 @@ def test_tissue_floor_is_zero_on_the_models_own_posed_skin(small_case_set):
     assert 0.02 < row.tibia_scanned_mm < 8.0 and 0.02 < row.tibia_posed_mm < 8.0
 
 
-def test_tissue_floor_reads_the_flexion_of_the_models_own_skin_exactly(small_case_set, tmp_path):
+def test_tissue_floor_reads_the_flexion_of_the_models_own_skin_exactly(small_case_set, tmp_path, monkeypatch):
     """The tissue's flexion floors: on a case set whose 0 mm image is the association model's own skin posed
     with the true bones, the femur's floor, the tibia's on the posed shank and both together read the flexion
     within 0.1 deg of the truth (measured: 0.003 deg; the tibia's flexion taken from its floor on the scanned
-    shank instead reads 0.55 deg short there); on the case set's own image (the truth's other tissue) they are not all exact. The rows
-    carry each case's camera, mismatch and seen shank as ``knee compare`` counts it, at every mismatch asked."""
+    shank instead reads 0.55 deg short there); on the case set's own image (the truth's other tissue) they are
+    not all exact. The rows carry each case's camera, mismatch and seen shank as ``knee compare`` counts it, at
+    every mismatch asked, and a view that hardly shows the shank has no tibia floor (nan)."""
     import shutil
 
     from knee.app.experiments.case_set import (case_intrinsics, case_points_cam, iter_cases, read_case_set,
@@ -1092,6 +1093,15 @@ def test_tissue_floor_reads_the_flexion_of_the_models_own_skin_exactly(small_cas
                abs(first.tibia_posed_flexion_error_deg)) > 0.1
     with pytest.raises(KneeInputError, match="no case at 3 mm"):
         tissue_floor(small_case_set, mismatches=(3.0,))
+    # a view that hardly shows the shank has no tibia floor (its fit would stay at the truth it starts from):
+    # here every view counts as one, the bar set above any view's count
+    import knee.app.experiments.skin_floor as skin_floor_module
+
+    assert all(math.isfinite(r.flexion_error_deg) for r in theirs)
+    monkeypatch.setattr(skin_floor_module, "MIN_SEEN_SHANK", 10 ** 9)
+    hidden, = tissue_floor(small_case_set)
+    assert math.isnan(hidden.flexion_error_deg) and math.isnan(hidden.tibia_posed_flexion_error_deg)
+    assert math.isnan(hidden.tibia_scanned_flexion_error_deg) and hidden.femur_flexion_error_deg == first.femur_flexion_error_deg
 
 
 def test_flexion_floor_table_counts_the_views_that_see_the_shank():

@@ -269,7 +269,9 @@ class TissueFloorRow:
     relative to the femur, less the truth's) of those floors: the femur's with the true tibia, each of the
     tibia's with the true femur, and both floors together (the femur's floor with the tibia's on the posed
     shank). ``shank_points_true``: the depth points on the true shank's skin, as ``knee compare`` counts
-    them (the flexion target counts the views that see the shank)."""
+    them (the flexion target counts the views that see the shank); where fewer than
+    :data:`knee.models.prior.MIN_SEEN_SHANK`, the tibia's flexion floors are nan (its fit stays at the truth
+    it starts from)."""
 
     case: str
     femur_mm: float
@@ -318,13 +320,16 @@ def tissue_floor(folder, progress: Callable[[int, int, str], None] | None = None
         et = {k: pose_errors(tg, T_cam_femur, T_cam_tibia, T_cam_femur, T).tibia.footprints.mean for k, T in tibia.items()}
         T_tib = np.asarray(anatomy.tibia_pose, float)
         true = _flexion_deg(T_cam_femur, T_cam_tibia, T_tib)
+        seen = seen_shank_points(anatomy, raw, T_cam_tibia)
+        # a shank the view hardly shows leaves the tibia's fit where it started, at the truth: no floor there
+        shown = 0.0 if seen >= MIN_SEEN_SHANK else float("nan")
         out.append(TissueFloorRow(
             c["id"], e.femur.footprints.mean, et["scanned"], et["posed"], anatomy=c["anatomy"], camera=c["camera"],
-            mismatch_mm=float(c["mismatch_mm"]), shank_points_true=seen_shank_points(anatomy, raw, T_cam_tibia),
+            mismatch_mm=float(c["mismatch_mm"]), shank_points_true=seen,
             femur_flexion_error_deg=_flexion_deg(Tf, T_cam_tibia, T_tib) - true,
-            tibia_scanned_flexion_error_deg=_flexion_deg(T_cam_femur, tibia["scanned"], T_tib) - true,
-            tibia_posed_flexion_error_deg=_flexion_deg(T_cam_femur, tibia["posed"], T_tib) - true,
-            flexion_error_deg=_flexion_deg(Tf, tibia["posed"], T_tib) - true))
+            tibia_scanned_flexion_error_deg=_flexion_deg(T_cam_femur, tibia["scanned"], T_tib) - true + shown,
+            tibia_posed_flexion_error_deg=_flexion_deg(T_cam_femur, tibia["posed"], T_tib) - true + shown,
+            flexion_error_deg=_flexion_deg(Tf, tibia["posed"], T_tib) - true + shown))
     if progress:
         progress(len(out), len(out), "done")
     return out
