@@ -1101,7 +1101,9 @@ def test_tissue_floor_reads_the_flexion_of_the_models_own_skin_exactly(small_cas
     monkeypatch.setattr(skin_floor_module, "MIN_SEEN_SHANK", 10 ** 9)
     hidden, = tissue_floor(small_case_set)
     assert math.isnan(hidden.flexion_error_deg) and math.isnan(hidden.tibia_posed_flexion_error_deg)
-    assert math.isnan(hidden.tibia_scanned_flexion_error_deg) and hidden.femur_flexion_error_deg == first.femur_flexion_error_deg
+    # the femur's floor does not need the shank (the same within the FEM's threaded solve: 0.002 deg apart seen)
+    assert math.isnan(hidden.tibia_scanned_flexion_error_deg)
+    assert abs(hidden.femur_flexion_error_deg - first.femur_flexion_error_deg) < 0.1
 
 
 def test_flexion_floor_table_counts_the_views_that_see_the_shank():
