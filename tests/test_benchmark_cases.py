@@ -953,6 +953,15 @@ def test_skin_floor_on_the_case_set_and_its_script(small_case_set, tmp_path, cap
     assert "| median of 4 | " in out  # every case of the set at 0 and 1 mm
     paper_1mm, = [ln for ln in out.splitlines() if ln.startswith("| phantom | paper | 1 mm | 1 | ")]
     assert "| 0 of 1 | " in paper_1mm  # (iii)'s miss, counted in its view
+    # a compare table without the flexion columns still gives (iii)'s footprints; the flexion table then has no
+    # method columns
+    no_flexion_table = tmp_path / "footprints_only.csv"
+    no_flexion_table.write_text("case,method,femur_footprints_mm,tibia_footprints_mm\n"
+                                "phantom-mechanism-40-1mm-paper,links,1.0,3.0\n")
+    assert run_script("skin_mismatch_floor", [small_case_set, "--compare", no_flexion_table, "--tissue"]) == 0
+    out = capsys.readouterr().out
+    line, = [ln for ln in out.splitlines() if ln.startswith("| 1 mm | 1 | ")]
+    assert line.endswith("| 2.00 |") and "method within 2 deg" not in out
     only_1mm = build_case_set(tmp_path / "sub", seed=4, data=None, mechanism_flexions=(40.0,), mismatches=(1.0,))
     with pytest.raises(KneeInputError, match="rendered at 0 mm"):
         skin_floor(only_1mm)
