@@ -411,26 +411,59 @@ def icp_held(source_points, target_points, target_normals, free=(True,) * 6, piv
     Gauss-Newton on the point-to-plane residuals ``n . (T p - q)`` of each point's nearest target point
     within ``max_distance`` mm; stops after ``iterations`` or when a step moves less than ``tolerance``
     (rad, mm). Returns the transform (``init`` included; identity when None) and the fitness: the fraction
-    of source points with a target point within ``max_distance``."""
-    src = np.asarray(source_points, float)
+    of source points with a target point within ``max_distance``. A target given as samples of a surface
+    pairs each point with the nearest sample's plane, which on one side of a curved surface is biased by
+    the samples' spacing: :func:`icp_held_to_surface` pairs it with the surface's own closest point."""
     dst = np.asarray(target_points, float)
     nrm = np.asarray(target_normals, float)
+    tree = cKDTree(dst)
+
+    def pair(p):
+        dist, j = tree.query(p, distance_upper_bound=max_distance)
+        near = np.isfinite(dist)
+        return near, dst[j[near]], nrm[j[near]]
+
+    return _held_gauss_newton(source_points, pair, free, pivot, init, iterations, tolerance)
+
+
+def icp_held_to_surface(source_points, surface, free=(True,) * 6, pivot=(0.0, 0.0, 0.0), init=None,
+                        max_distance: float = 20.0, iterations: int = 30,
+                        tolerance: float = 1e-7) -> tuple[np.ndarray, float]:
+    """:func:`icp_held` onto a surface itself rather than onto samples of it: each point is paired with the
+    surface's closest point and that face's normal, in double precision (``surface.closest_on_faces(points)
+    -> (points, normals)``, e.g. a :class:`knee.foundations.surfaces.SurfaceQuery`), when within
+    ``max_distance`` mm. The nearest of a few thousand samples lies up to half their spacing aside, and on one
+    side of a curved surface the planes so paired lean the same way: the surface's own points seen from one
+    side are placed back exactly here (tested), where 8,000 samples of a leg's skin left them 0.07-0.11 mm off
+    at the knee's centre (0.9-1.3 mm with the skin's cut end in view)."""
+
+    def pair(p):
+        q, n = surface.closest_on_faces(p)
+        near = np.linalg.norm(p - q, axis=1) < max_distance
+        return near, q[near], n[near]
+
+    return _held_gauss_newton(source_points, pair, free, pivot, init, iterations, tolerance)
+
+
+def _held_gauss_newton(source_points, pair, free, pivot, init, iterations: int,
+                       tolerance: float) -> tuple[np.ndarray, float]:
+    """The Gauss-Newton of :func:`icp_held` with the pairing ``pair(points) -> (near mask, targets, normals)``
+    of the moved points (targets and normals of the near ones)."""
+    src = np.asarray(source_points, float)
     free = np.asarray(free, bool)
     if free.shape != (6,):
         raise KneeInputError(f"free must mark six motion components, got shape {free.shape}")
     c = np.asarray(pivot, float)
     T = np.eye(4) if init is None else np.array(init, float)
-    tree = cKDTree(dst)
     fitness = 0.0
     for _ in range(iterations):
         p = src @ T[:3, :3].T + T[:3, 3]
-        dist, j = tree.query(p, distance_upper_bound=max_distance)
-        near = np.isfinite(dist)
+        near, q, n = pair(p)
         fitness = float(near.mean()) if len(src) else 0.0
         if near.sum() < 6 or not free.any():
             break
-        pn, n = p[near], nrm[j[near]]
-        r = np.einsum("ij,ij->i", pn - dst[j[near]], n)
+        pn = p[near]
+        r = np.einsum("ij,ij->i", pn - q, n)
         A = np.hstack([np.cross(pn - c, n), n])[:, free]
         x = np.zeros(6)
         x[free] = np.linalg.lstsq(A, -r, rcond=None)[0]

@@ -26,6 +26,7 @@ class SurfaceQuery:
 
     def __init__(self, vertices, faces):
         v = np.asarray(vertices, float)
+        self.vertices, self.faces = v, np.asarray(faces, np.int64)  # double precision, for :meth:`closest_on_faces`
         self.lo, self.hi = v.min(axis=0), v.max(axis=0)  # the mesh's bounding box
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)),
@@ -60,6 +61,29 @@ class SurfaceQuery:
         about 1e-3 mm of equally near, either)."""
         p = o3d.core.Tensor(np.asarray(points, np.float32).reshape(-1, 3))
         return self.scene.compute_closest_points(p)["primitive_ids"].numpy().astype(np.int64)
+
+    def closest_on_faces(self, points) -> tuple[np.ndarray, np.ndarray]:
+        """(P, 3) -> closest points on the surface (P, 3) and unit normals there (P, 3) for point-to-plane fits,
+        in double precision on the nearest face (found in single precision: :meth:`closest_faces`). The normal
+        is the face's where the closest point lies inside it, and otherwise (on an edge or a corner) the
+        direction from the closest point to the point, the distance's own gradient, oriented as the face's.
+        Where two faces are equally near (the closest point on their shared edge, the choice between them left
+        to single precision) either gives the same point and normal, so both change continuously as the points
+        move, which an iterative fit that stops on small steps needs (with :meth:`closest`'s single-precision
+        points and each chosen face's own normal, a registration's answer wandered by 1e-3 mm with the last
+        digits of its input)."""
+        p = np.asarray(points, float).reshape(-1, 3)
+        t = self.vertices[self.faces[self.closest_faces(p)]]
+        c = trimesh.triangles.closest_point(t, p)
+        n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        with np.errstate(divide="ignore", invalid="ignore"):  # a degenerate face: NaN weights, kept on its normal
+            w = trimesh.triangles.points_to_barycentric(t, c)
+        d = p - c
+        dn = np.linalg.norm(d, axis=1)
+        rim = (np.min(w, axis=1) < 1e-9) & (dn > 1e-9)  # on an edge or a corner, and off the surface
+        n[rim] = d[rim] / dn[rim, None] * np.where(np.einsum("ij,ij->i", d[rim], n[rim]) < 0.0, -1.0, 1.0)[:, None]
+        return c, n
 
     def closest(self, points) -> tuple[np.ndarray, np.ndarray]:
         """(P, 3) -> closest points on the surface (P, 3) and the normals of their triangles (P, 3)."""
