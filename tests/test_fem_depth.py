@@ -305,6 +305,15 @@ def test_closest_on_faces_gives_the_distances_gradient_and_changes_continuously(
     assert np.all(np.linalg.norm(np.diff(n, axis=0), axis=1) < 0.01)
     np.testing.assert_allclose(n[0], [0.0, 0.0, 1.0], atol=1e-12)
     assert n[-1][0] > 0.0
+    # what the springs of the surface phase pair with: the nearest face, the closest point on it, the face's own
+    # normal (beyond the edge too) and weights that rebuild the closest point from the face's corners
+    p = np.array([[3.0, -2.0, 14.0], [14.0, 1.0, 13.0]])
+    face, c, n, w = q.on_nearest_faces(p)
+    np.testing.assert_allclose(c, [[3.0, -2.0, 10.0], [10.0, 1.0, 10.0]], atol=1e-12)
+    np.testing.assert_allclose(np.einsum("pi,pij->pj", w, cube.vertices[cube.faces[face]]), c, atol=1e-12)
+    np.testing.assert_allclose(n, cube.face_normals[face], atol=1e-12)
+    assert np.all(w >= -1e-12) and np.allclose(w.sum(axis=1), 1.0)
+    np.testing.assert_allclose(n[0], [0.0, 0.0, 1.0], atol=1e-12)
 
 
 def test_icp_held_to_surface_places_one_side_of_a_curved_surface_back_exactly():

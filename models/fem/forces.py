@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-import trimesh
 from scipy.spatial import cKDTree
 
 from knee.foundations.geometry import principal_axes as _principal_axes, rigid_register
@@ -209,15 +208,10 @@ class DepthPointForces:
 
     def forces(self, x):
         p = self.map.apply(x)
-        face = SurfaceQuery(p, self.faces).closest_faces(self.thinned)
-        t = p[self.faces[face]]  # (P, 3, 3)
-        c = trimesh.triangles.closest_point(t, self.thinned)  # on the nearest face, in double precision
+        # the nearest face, the closest point on it in double precision, its normal and the point's weights
+        face, c, n, w = SurfaceQuery(p, self.faces).on_nearest_faces(self.thinned)
         near = np.linalg.norm(c - self.thinned, axis=1) < self.reference
-        corners, t, c = self.faces[face[near]], t[near], c[near]
-        n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        with np.errstate(divide="ignore", invalid="ignore"):  # a degenerate face gives NaN weights, replaced below
-            w = trimesh.triangles.points_to_barycentric(t, c)
+        corners, c, n, w = self.faces[face[near]], c[near], n[near], w[near]
         w = np.where(np.isfinite(w).all(axis=1, keepdims=True), w, 1.0 / 3.0)  # a degenerate face: its centre
         self._pairs = (corners, w, n)
         self.active = np.bincount(corners.ravel(), minlength=self.n_skin) > 0

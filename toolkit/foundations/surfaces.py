@@ -62,6 +62,20 @@ class SurfaceQuery:
         p = o3d.core.Tensor(np.asarray(points, np.float32).reshape(-1, 3))
         return self.scene.compute_closest_points(p)["primitive_ids"].numpy().astype(np.int64)
 
+    def on_nearest_faces(self, points) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(P, 3) -> each point's nearest face (P,; found in single precision, :meth:`closest_faces`), the
+        closest point on that face in double precision (P, 3), the face's unit normal (P, 3) and the closest
+        point's barycentric weights on the face (P, 3; NaN on a degenerate face)."""
+        p = np.asarray(points, float).reshape(-1, 3)
+        face = self.closest_faces(p)
+        t = self.vertices[self.faces[face]]
+        c = trimesh.triangles.closest_point(t, p)
+        n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        with np.errstate(divide="ignore", invalid="ignore"):  # a degenerate face: NaN weights
+            w = trimesh.triangles.points_to_barycentric(t, c)
+        return face, c, n, w
+
     def closest_on_faces(self, points) -> tuple[np.ndarray, np.ndarray]:
         """(P, 3) -> closest points on the surface (P, 3) and unit normals there (P, 3) for point-to-plane fits,
         in double precision on the nearest face (found in single precision: :meth:`closest_faces`). The normal
@@ -73,12 +87,7 @@ class SurfaceQuery:
         points and each chosen face's own normal, a registration's answer wandered by 1e-3 mm with the last
         digits of its input)."""
         p = np.asarray(points, float).reshape(-1, 3)
-        t = self.vertices[self.faces[self.closest_faces(p)]]
-        c = trimesh.triangles.closest_point(t, p)
-        n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        with np.errstate(divide="ignore", invalid="ignore"):  # a degenerate face: NaN weights, kept on its normal
-            w = trimesh.triangles.points_to_barycentric(t, c)
+        _, c, n, w = self.on_nearest_faces(p)  # a degenerate face (NaN weights) is kept on its normal
         d = p - c
         dn = np.linalg.norm(d, axis=1)
         rim = (np.min(w, axis=1) < 1e-9) & (dn > 1e-9)  # on an edge or a corner, and off the surface
