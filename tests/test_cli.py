@@ -226,6 +226,15 @@ def test_compare_bad_input(tmp_path, args, msg):
     assert not (tmp_path / "c").exists()
 
 
+def test_compare_names_a_knee_it_cannot_find(tmp_path):
+    """A path that is neither a case set, a subject folder, a parameter file nor a bundled set is named as such,
+    whatever the options given with it (not an option refused as if it were a parameter set's)."""
+    for extra in ([], ["--prior", "p.toml", "--truth-motion", "m.csv"]):
+        assert_clean_error(run("compare", tmp_path / "nowhere", "--out", tmp_path / "c", *extra),
+                           "not a case set, a subject folder, a bundled parameter set")
+    assert not (tmp_path / "c").exists()
+
+
 @pytest.mark.parametrize("command", [["synth-subject", "x"], ["fit", "x", "--out", "y"], ["fem", "volunteer"],
                                      ["compare", "volunteer"]])
 def test_a_negative_seed_is_one_line(command, tmp_path):

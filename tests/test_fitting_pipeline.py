@@ -341,8 +341,12 @@ def test_nan_rows_are_skipped_and_counted_in_the_report(subject_dir, tmp_path):
     assert any("1 of 60 motion rows skipped" in w for w in o.warnings)
     with pytest.raises(KneeInputError, match="not empty"):
         run_fit(d, tmp_path / "out")
-    with pytest.raises(KneeInputError, match="is also an input"):
+    with pytest.raises(KneeInputError, match="lies inside the input folder"):
         run_fit(d, d / "results")
+    with pytest.raises(KneeInputError, match="holds an input"):
+        run_fit(d, d.parent)
+    with pytest.raises(KneeInputError, match="is also an input"):
+        run_fit(d, d)
 
 
 def test_cli_synth_subject_and_fit(tmp_path):

@@ -77,8 +77,12 @@ def check_output(path, kind: str, force: bool, inputs=(), flag: str = "--out") -
         if i is None:
             continue
         ir = Path(i).resolve()
-        if r == ir or (kind == "folder" and _inside(ir, r)) or (Path(i).is_dir() and _inside(r, ir)):
+        if r == ir:
             raise KneeInputError(f"{flag} {p} is also an input ({i}); choose a separate output")
+        if kind == "folder" and _inside(ir, r):
+            raise KneeInputError(f"{flag} {p} holds an input ({i}); choose a separate output")
+        if Path(i).is_dir() and _inside(r, ir):
+            raise KneeInputError(f"{flag} {p} lies inside the input folder {i}; choose an output outside it")
     if p.exists() or p.is_symlink():
         if kind == "file" and not p.is_file():
             raise KneeInputError(f"{flag} {p} is {'a folder' if p.is_dir() else 'not a regular file'}; "

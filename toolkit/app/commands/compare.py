@@ -32,7 +32,7 @@ from knee.models.fem.depth import CAMERA_PLACEMENTS, DepthNoise, camera_from_spe
 from knee.models.fem.methods import METHODS
 from knee.models.fem.scene import build_association_model
 from knee.models.mechanism import Mechanism
-from knee.models.mechanism.params import load_model
+from knee.models.mechanism.params import bundled_models, load_model
 
 
 def camera_list(text: str) -> list[str]:
@@ -76,6 +76,9 @@ def run(args) -> int:
     if Path(args.model).is_dir():
         check_form_options(args, "subject folder")
         return run_subject(args)
+    if not Path(args.model).exists() and args.model not in bundled_models():
+        raise KneeInputError(f"unknown knee {args.model!r}: not a case set, a subject folder, a bundled parameter set "
+                             f"({', '.join(sorted(bundled_models()))}) nor an existing TOML file")
     check_form_options(args, "parameter set")
     flexions = flexion_list(args.flexion)
     cams = {c: camera_from_spec(c) for c in camera_list(args.cameras)}
