@@ -15,11 +15,14 @@ tibia's own at the end, and of the misses how many the femur's tilt leads (large
 that axis the flexion's error is about the femur's tilt less the tibia's: which bone's placement to look at.
 
     .venv/bin/python scripts/diagnose_case_set.py CASE_SET [--only ID,...] [--method links|init]
-        [--csv OUT.csv]
-    .venv/bin/python scripts/diagnose_case_set.py --from-csv A.csv [B.csv ...]
+        [--csv OUT.csv] [--plot OUT.png]
+    .venv/bin/python scripts/diagnose_case_set.py --from-csv A.csv [B.csv ...] [--plot OUT.png]
 
 The CSV has a row per case and stage. About 5 s per case on the 2-core machine (60 cases: 5 min).
 ``--from-csv`` prints both tables again from such CSVs, pooled (e.g. one per seed), without running anything.
+``--plot`` draws the stage-by-stage figure (:func:`knee.app.reports.case_set.plot_stages`): per anatomy, the
+median footprint error at each stage with its quartiles, a line per skin mismatch, and the share of the views
+that see the shank with the flexion within 2 deg.
 """
 
 from __future__ import annotations
@@ -143,18 +146,23 @@ def main() -> int:
     ap.add_argument("--csv", default=None, help="write a row per case and stage here")
     ap.add_argument("--from-csv", nargs="+", default=None, metavar="CSV",
                     help="print the tables from CSVs this script wrote (pooled), running nothing")
+    ap.add_argument("--plot", default=None, help="draw the stage-by-stage figure here (PNG)")
     args = ap.parse_args()
     from knee.app.console import new_files, timed_progress
     from knee.foundations.errors import KneeError
     from knee.models.fem.methods import STAGES
     from knee.models.prior import MIN_SEEN_SHANK  # the cases that see the shank, as knee compare counts them
 
+    if args.plot and Path(args.plot).suffix.lower() != ".png":
+        print(f"error: --plot {args.plot}: the figure is a PNG; give a .png file", file=sys.stderr)
+        return 2
     if (args.cases is None) == (args.from_csv is None):
         print("error: give a case set or --from-csv, not both" if args.cases else
               "error: give a case set folder to run, or --from-csv with the tables of earlier runs", file=sys.stderr)
         return 2
     if args.from_csv is not None:
         try:
+            new_files(args.plot)
             records = read_rows(args.from_csv)
         except KneeError as e:
             print(f"error: {e}", file=sys.stderr)
@@ -162,13 +170,14 @@ def main() -> int:
         print("\n".join(stage_table(records, (*STAGES, "final"), MIN_SEEN_SHANK)))
         print()
         print("\n".join(flexion_table(records, MIN_SEEN_SHANK)))
+        _plot(records, (*STAGES, "final"), args.plot, MIN_SEEN_SHANK)
         return 0
 
     from knee.app.experiments.case_set import diagnose_case_set, read_case_set
     from knee.foundations.files import write_records
 
     try:
-        new_files(args.csv)
+        new_files(args.csv, args.plot)
         read_case_set(args.cases)
     except KneeError as e:
         print(f"error: {e}", file=sys.stderr)
@@ -203,7 +212,20 @@ def main() -> int:
     print("\n".join(stage_table(records, (*STAGES, "final"), MIN_SEEN_SHANK)))
     print()
     print("\n".join(flexion_table(records, MIN_SEEN_SHANK)))
+    _plot(records, (*STAGES, "final"), args.plot, MIN_SEEN_SHANK)
     return 0
+
+
+def _plot(records, stages, path, min_seen: int) -> None:
+    """The stage-by-stage figure at ``path`` (written whole or not at all), when one is asked for."""
+    if not path:
+        return
+    from knee.app.reports.case_set import plot_stages
+    from knee.foundations.files import staged_file
+
+    with staged_file(path) as tmp:
+        plot_stages(records, stages, tmp, min_seen)
+    print(f"figure: {path}")
 
 
 if __name__ == "__main__":

@@ -370,6 +370,55 @@ def test_diagnosis_tables_pool_csvs_and_split_the_flexion_by_view(tmp_path, caps
         _one_line_error(capsys, says)
 
 
+def test_diagnosis_stage_figure_summarises_each_anatomy_and_mismatch(tmp_path, capsys, run_script):
+    """The stage-by-stage figure's numbers: per anatomy and skin mismatch, the footprint error's median and
+    quartiles at each stage (numpy's linear percentiles, computed here by hand) and the share of the views that
+    see the shank with the flexion within 2 deg; a view that does not see the shank is left out of that share
+    only. ``--plot`` writes a PNG; a figure that is not a .png, or one that exists, is refused in one line."""
+    from knee.app.reports.case_set import stage_summary
+    from knee.foundations.files import write_records
+    from knee.models.prior import MIN_SEEN_SHANK
+
+    def rec(case, stage, fp, err, anatomy="phantom", mm=1.0, seen=MIN_SEEN_SHANK):
+        r = {"case": case, "anatomy": anatomy, "family": "measured", "camera": "paper", "stage": stage,
+             "mismatch_mm": mm, "shank_points_true": seen, "flexion_true_deg": 45.0, "femur_footprints_mm": fp,
+             "tibia_footprints_mm": fp, "footprints_mm": fp, "flexion_deg": 45.0 + err}
+        for k in ("femur_rotation", "femur_translation", "relative_rotation", "tibia_rotation"):
+            for a in "xyz":
+                r[f"{k}_{a}_{'mm' if k == 'femur_translation' else 'deg'}"] = 0.0
+        return r
+
+    rows = [rec("c1", "estimate", 1.0, 0.5), rec("c2", "estimate", 2.0, 2.5), rec("c3", "estimate", 3.0, -1.0),
+            rec("c4", "estimate", 10.0, 3.0, seen=MIN_SEEN_SHANK - 1),
+            rec("c1", "final", 1.0, 0.1), rec("c2", "final", 1.5, 0.2), rec("c3", "final", 2.0, -2.5),
+            rec("c4", "final", 4.0, 0.0, seen=MIN_SEEN_SHANK - 1),
+            rec("v1", "final", 6.0, 1.0, anatomy="visible-human-male", mm=2.0)]
+    d = stage_summary(rows, ("estimate", "final"))
+    assert set(d) == {("phantom", 1.0), ("visible-human-male", 2.0)}
+    ph = d[("phantom", 1.0)]
+    assert ph["cases"] == 4
+    # estimate: 1, 2, 3, 10 -> quartiles at 1.75, 2.5, 4.75; final: 1, 1.5, 2, 4 -> 1.375, 1.75, 2.5
+    np.testing.assert_allclose(ph["q1"], [1.75, 1.375])
+    np.testing.assert_allclose(ph["median"], [2.5, 1.75])
+    np.testing.assert_allclose(ph["q3"], [4.75, 2.5])
+    # the views that see the shank: c1-c3; within 2 deg at the estimate c1 and c3, at the end c1 and c2
+    np.testing.assert_allclose(ph["within"], [2 / 3, 2 / 3])
+    vh = d[("visible-human-male", 2.0)]
+    assert vh["median"][1] == 6.0 and np.isnan(vh["median"][0]) and np.isnan(vh["within"][0]) and vh["within"][1] == 1.0
+    a = tmp_path / "a.csv"
+    write_records(a, rows)
+    fig = tmp_path / "stages.png"
+    assert run_script("diagnose_case_set", ["--from-csv", a, "--plot", fig]) == 0
+    assert fig.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert [f.name for f in tmp_path.iterdir() if f.name.startswith(".")] == []  # no partial file left
+    capsys.readouterr()
+    for argv, says in [(["--from-csv", a, "--plot", tmp_path / "stages.svg"], "give a .png file"),
+                       (["--from-csv", a, "--plot", fig], "exists; not overwritten")]:
+        assert run_script("diagnose_case_set", argv) == 2
+        _one_line_error(capsys, says)
+    assert not (tmp_path / "stages.svg").exists()
+
+
 @pytest.mark.parametrize("script, selects_none", [("diagnose_case_set", "no case of"),
                                                   ("bench_case_set", "selects none of the"),
                                                   ("skin_mismatch_floor", None), ("estimate_fit", None),

@@ -337,6 +337,68 @@ def plot_flexion_floor(floors, errors: dict, path, label: str = "(iii) links",
     plt.close(fig)
 
 
+def stage_summary(records, stages, min_seen: int = MIN_SEEN_SHANK) -> dict:
+    """Method (iii)'s error stage by stage (``scripts/diagnose_case_set.py``'s rows: dicts with ``anatomy``,
+    ``stage``, ``mismatch_mm``, ``footprints_mm``, ``flexion_deg``, ``flexion_true_deg``, ``shank_points_true``),
+    per anatomy and skin mismatch: {(anatomy, mm): {"median", "q1", "q3": footprint error (mm) per stage,
+    "within": the share of the views that see the shank with the flexion within 2 deg per stage, "cases"}};
+    a stage no row has is NaN."""
+    out = {}
+    for key in sorted({(r["anatomy"], float(r["mismatch_mm"])) for r in records}):
+        g = [r for r in records if (r["anatomy"], float(r["mismatch_mm"])) == key]
+        d = {"median": [], "q1": [], "q3": [], "within": [], "cases": len({r.get("key", r["case"]) for r in g})}
+        for stage in stages:
+            v = np.array([r["footprints_mm"] for r in g if r["stage"] == stage], float)
+            v = v[np.isfinite(v)]
+            q = np.percentile(v, [25, 50, 75]) if len(v) else np.full(3, np.nan)
+            d["q1"].append(float(q[0]))
+            d["median"].append(float(q[1]))
+            d["q3"].append(float(q[2]))
+            seen = [r for r in g if r["stage"] == stage and r["shank_points_true"] >= min_seen]
+            d["within"].append(sum(abs(r["flexion_deg"] - r["flexion_true_deg"]) <= 2.0 for r in seen) / len(seen)
+                               if seen else float("nan"))
+        out[key] = d
+    return out
+
+
+def plot_stages(records, stages, path, min_seen: int = MIN_SEEN_SHANK, title: str = "") -> dict:
+    """Method (iii)'s error stage by stage (:func:`stage_summary`), a column per anatomy: above, the median
+    footprint error with its interquartile band, a line per skin mismatch, beside the 2 and 3 mm targets;
+    below, the share of the views that see the shank with the flexion within 2 deg. Returns the summary."""
+    data = stage_summary(records, stages, min_seen)
+    anatomies = sorted({a for a, _ in data})
+    n = max(1, len(anatomies))
+    fig, axes = plt.subplots(2, n, figsize=(4.6 * n, 6.4), squeeze=False, sharex=True, sharey="row",
+                             gridspec_kw={"height_ratios": [2, 1]})
+    colours = {0.0: "tab:green", 1.0: "tab:blue", 2.0: "tab:red"}
+    x = np.arange(len(stages))
+    for col, a in enumerate(anatomies):
+        top, bottom = axes[0][col], axes[1][col]
+        for (anat, mm), d in data.items():
+            if anat != a:
+                continue
+            c = colours.get(mm, "tab:gray")
+            top.plot(x, d["median"], marker="o", color=c, label=f"{mm:g} mm ({d['cases']} cases)")
+            top.fill_between(x, d["q1"], d["q3"], color=c, alpha=0.12, lw=0)
+            bottom.plot(x, 100.0 * np.asarray(d["within"]), marker="o", color=c)
+        for level, ls in ((2.0, "--"), (3.0, ":")):
+            top.axhline(level, color="k", lw=1, ls=ls)
+        top.set_title(a, fontsize=10)
+        top.grid(alpha=0.3)
+        top.legend(fontsize=7, title="skin mismatch", title_fontsize=7)
+        bottom.set_ylim(0, 105)
+        bottom.grid(alpha=0.3)
+        bottom.set_xticks(x, [s.replace("_", " ") for s in stages], rotation=30, fontsize=8)
+    axes[0][0].set_ylabel("footprint error (mm): median, quartiles")
+    axes[1][0].set_ylabel("flexion within 2 deg (%)")
+    axes[0][0].set_ylim(bottom=0)
+    fig.suptitle(title or "Method (iii) stage by stage (targets: 2 mm at 0-1 mm, 3 mm at 2 mm)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110, format="png")
+    plt.close(fig)
+    return data
+
+
 class CaseSetRecorder:
     """``on_result`` callback of :func:`knee.app.experiments.case_set.run_case_set` writing the recording
     (layout: the module docstring). Each bone's mesh is logged when its anatomy's first case comes (and
