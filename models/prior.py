@@ -410,8 +410,10 @@ def estimate_flexion(skin: SkinModel, points, T_init=None, coarse_step_deg: floa
     shank = seen_shank_points(sk.at(a), transform_points(T, pts))
     if shank < MIN_SEEN_SHANK:
         warnings.append(f"the shank is hardly seen ({shank} depth points on it, after {VOXEL_MM:.0f} mm voxels): the "
-                        "flexion shows only through the knee's outline, so the estimate can be off by a few degrees "
-                        "(e.g. a camera in front of a knee flexed beyond about 50 deg)")
+                        "flexion shows only through the knee's outline, so the estimate can be far off (on the "
+                        f"honest benchmark's views that warn so, {UNSEEN_FLEXION_ERROR_DEG[0]:.0f} deg median and up "
+                        f"to {UNSEEN_FLEXION_ERROR_DEG[1]:.0f}; e.g. a camera in front of a knee flexed beyond about "
+                        "50 deg)")
     return FlexionEstimate(flexion=float(a), T_world_model=invert_poses(T), rms=s, inliers=inl, scores=scores,
                            contrast=float(contrast), warnings=warnings, skin=sk, shank_points=shank)
 
@@ -768,6 +770,12 @@ def effective_point_sd(width_mm: float, point_sd_mm: float = POINT_SD_MM,
 
 #: Fewest shank points to attempt the correction.
 MIN_CORRECTION_POINTS = 200
+
+#: What the warnings of a hardly seen shank say the flexion's error can be (deg: median, largest), as measured:
+#: method (iii) on the honest benchmark's ten seeds, the 18 views (the phantom's and the Visible Human's,
+#: mostly frontal at 90 deg) whose run warned that the shank is hardly seen: 8.3 deg median, 17.7 at most,
+#: none within 2 deg (BENCHMARKS.md). A figure of the views measured, not a bound.
+UNSEEN_FLEXION_ERROR_DEG = (8.0, 18.0)
 #: The band (mm) around the prior's shank skin whose points the tibia's correction starts from, before it
 #: narrows to 8 mm: a tibia a few degrees off the prior's path moves the shank's skin 10-20 mm a hand's
 #: breadth below the knee. Measured on the honest benchmark's 60 cases (method iii): 45 flexions within 2 deg
@@ -925,5 +933,7 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
         return TibiaCorrection(T_prior, np.zeros(6), n, float("nan"), float("nan"),
                                note=f"the shank is seen by {n} depth points (at least {MIN_CORRECTION_POINTS} "
                                     "needed to correct the tibia's pose): the prior's pose is kept, so the flexion is the "
-                                    "skin fit's alone and can be off by a few degrees")
+                                    "skin fit's alone and can be far off (on the honest benchmark's views that say so, "
+                                    f"{UNSEEN_FLEXION_ERROR_DEG[0]:.0f} deg median and up to "
+                                    f"{UNSEEN_FLEXION_ERROR_DEG[1]:.0f})")
     return TibiaCorrection(T_prior, xi, n, before, residual_rms(xi, sel))
