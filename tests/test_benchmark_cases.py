@@ -1,6 +1,7 @@
 """The benchmark's independent truth: the tetrahedral tissue model (closed forms, finite differences,
 invariances), the skin mismatch field, and the case set (its truth, its rough poses, its runner)."""
 
+import csv
 import dataclasses
 import math
 import os
@@ -422,7 +423,7 @@ def test_diagnosis_stage_figure_summarises_each_anatomy_and_mismatch(tmp_path, c
 @pytest.mark.parametrize("script, selects_none", [("diagnose_case_set", "no case of"),
                                                   ("bench_case_set", "selects none of the"),
                                                   ("skin_mismatch_floor", None), ("estimate_fit", None),
-                                                  ("bench_loaded", None)])
+                                                  ("bench_loaded", None), ("grid_placement_floor", "no case from")])
 def test_case_set_scripts_refuse_bad_input_in_one_line(script, selects_none, small_case_set, tmp_path, capsys, run_script):
     """The case-set scripts: a folder that is not a case set, a selection that matches no case, an existing
     --csv: one line each naming what is wrong, exit code 2, no CSV written and an existing one untouched."""
@@ -1162,6 +1163,88 @@ def test_tissue_floor_reads_the_flexion_of_the_models_own_skin_exactly(small_cas
     # the femur's floor does not need the shank (the same within the FEM's threaded solve: 0.002 deg apart seen)
     assert math.isnan(hidden.tibia_scanned_flexion_error_deg)
     assert abs(hidden.femur_flexion_error_deg - first.femur_flexion_error_deg) < 0.1
+
+
+def test_placement_floor_measures_each_grid_and_placement(small_case_set, monkeypatch):
+    """The grid-placement floor builds one model per grid and placement asked, and the settings reach it (the
+    moved grid's nodes across are the model's shifted by half a cell, one cell more); its rows under the model's
+    own grid are the tissue floor's, and another placement gives another floor. Counts below 1, counts that
+    are not whole and offsets outside [0, 1) are refused before any model is built."""
+    import knee.app.experiments.skin_floor as SF
+    from knee.foundations.errors import KneeInputError
+
+    built = []
+    original = SF.build_knee_model
+
+    def spy(anatomy, settings=None, prior=None, **kw):
+        model = original(anatomy, settings, prior=prior, **kw)
+        built.append((settings, model.grid.axes))
+        return model
+
+    monkeypatch.setattr(SF, "build_knee_model", spy)
+    for bad, says in [(dict(cells_across=(0,)), "whole numbers"), (dict(cells_across=(7.5,)), "whole numbers"),
+                      (dict(offsets=(1.0,)), r"in \[0, 1\)"), (dict(offsets=(-0.25,)), r"in \[0, 1\)")]:
+        with pytest.raises(KneeInputError, match=says):
+            SF.placement_floor(small_case_set, **bad)
+    assert built == []
+    rows = SF.placement_floor(small_case_set, cells_across=(7,), offsets=(0.0, 0.5), mismatches=(0.0,))
+    assert [(s.n_across, s.grid_offset) for s, _ in built] == [(7, 0.0), (7, 0.5)]
+    x0, x5 = built[0][1][0], built[1][1][0]
+    assert len(x5) == len(x0) + 1
+    np.testing.assert_allclose(x5[:-1], x0 - 0.5 * (x0[1] - x0[0]), atol=1e-9)
+    (own,) = [r for r in rows if r.offset == 0.0]
+    (moved,) = [r for r in rows if r.offset == 0.5]
+    (floor,) = SF.tissue_floor(small_case_set)
+    assert (own.case, own.cells_across, own.mismatch_mm, own.camera) == (floor.case, 7, 0.0, floor.camera)
+    # (the FEM's solver times itself to choose when to refactorise: a process's first solve can take another
+    # path to its tolerance, 0.01 mm apart on this case's tibia; a grid moved by half a cell: 0.37 mm)
+    assert abs(own.femur_mm - floor.femur_mm) < 0.03 and abs(own.tibia_posed_mm - floor.tibia_posed_mm) < 0.03
+    assert moved.case == own.case and abs(moved.femur_mm - own.femur_mm) > 0.1
+
+
+def test_placement_spread_by_hand():
+    """The placement summary: per anatomy, grid and mismatch, the median femur floor at each offset and each
+    view's standard deviation over the offsets averaged over the views, computed here by hand."""
+    from knee.app.experiments.skin_floor import PlacementFloorRow, placement_spread
+
+    def row(case, cells, offset, femur, mm=0.0, anatomy="phantom"):
+        return PlacementFloorRow(case, anatomy, "paper", mm, cells, offset, femur, 0.0)
+
+    rows = [row("a", 7, 0.0, 1.0), row("a", 7, 0.5, 3.0), row("b", 7, 0.0, 2.0), row("b", 7, 0.5, 2.0),
+            row("c", 7, 0.0, 4.0), row("c", 7, 0.5, 1.0),
+            row("a", 14, 0.0, 1.0), row("a", 14, 0.5, 1.0), row("d", 7, 0.0, 5.0, mm=1.0, anatomy="leg")]
+    d = placement_spread(rows)
+    assert set(d) == {("phantom", 7, 0.0), ("phantom", 14, 0.0), ("leg", 7, 1.0)}
+    p = d[("phantom", 7, 0.0)]
+    # offset 0: 1, 2, 4 -> 2; offset 0.5: 3, 2, 1 -> 2; the views' sds 1, 0, 1.5 -> 2.5 / 3
+    assert p["offsets"] == [0.0, 0.5] and p["median"] == [2.0, 2.0] and p["cases"] == 3
+    assert p["spread"] == pytest.approx(2.5 / 3)
+    assert d[("phantom", 14, 0.0)]["spread"] == 0.0 and d[("leg", 7, 1.0)]["median"] == [5.0]
+
+
+def test_grid_placement_floor_script(small_case_set, tmp_path, capsys, run_script):
+    """``scripts/grid_placement_floor.py``: a table row per anatomy, grid and mismatch, a CSV row per view and
+    placement and the figure, written whole (no partial file left); bad counts, offsets, mismatches, a figure
+    that is not a PNG and an output that exists: one line each naming what is wrong, nothing written."""
+    out, png = tmp_path / "rows.csv", tmp_path / "placements.png"
+    assert run_script("grid_placement_floor", [small_case_set, "--offsets", "0,0.5", "--mismatches", "0",
+                                               "--csv", out, "--plot", png]) == 0
+    text = capsys.readouterr().out
+    line, = [ln for ln in text.splitlines() if ln.startswith("| phantom | 7 | 0 mm | 1 | ")]
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert len(cells) == 7 and all(float(c) > 0 for c in cells[4:6]) and float(cells[6]) >= 0
+    with open(out) as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["cells_across"], r["offset"]) for r in rows] == [("7", "0"), ("7", "0.5")]
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert [f.name for f in tmp_path.iterdir() if f.name.startswith(".")] == []
+    fresh = tmp_path / "fresh.csv"
+    for argv, says in [(["--offsets", "0,1"], "fractions of a cell"), (["--cells-across", "0"], "whole numbers"),
+                       (["--mismatches", "one"], "comma-separated numbers"), (["--cameras", " , "], "name camera"),
+                       (["--plot", tmp_path / "p.svg"], "give a .png file"), (["--plot", png], "exists; not overwritten")]:
+        assert run_script("grid_placement_floor", [small_case_set, *argv, "--csv", fresh]) == 2
+        _one_line_error(capsys, says)
+        assert not fresh.exists() and not (tmp_path / "p.svg").exists()
 
 
 def test_flexion_floor_table_counts_the_views_that_see_the_shank():

@@ -46,7 +46,7 @@ from knee.foundations.errors import KneeInputError
 from knee.foundations.pointclouds import icp, point_normals, voxel_downsample
 from knee.models.evaluation import pose_errors
 from knee.models.fem.methods import initialise_from_prior, quasi_static, register_to_posed_skin, tibia_path
-from knee.models.fem.scene import build_knee_model
+from knee.models.fem.scene import FemSettings, build_knee_model
 from knee.models.prior import (MIN_SEEN_SHANK, TIBIA_PRIOR_DEG, TIBIA_PRIOR_MM, VOXEL_MM, effective_point_sd,
                                right_jacobian, small_pose)
 
@@ -288,12 +288,13 @@ class TissueFloorRow:
 
 
 def tissue_floor(folder, progress: Callable[[int, int, str], None] | None = None,
-                 select: Callable[[dict], bool] | None = None, mismatches=(0.0,)) -> list[TissueFloorRow]:
+                 select: Callable[[dict], bool] | None = None, mismatches=(0.0,),
+                 settings: FemSettings | None = None) -> list[TissueFloorRow]:
     """The tissue's floors (:class:`TissueFloorRow`) on every case of the case set at the skin mismatches
     ``mismatches`` (mm; ``select``: a further filter). At 0 mm (the default) the truth's skin differs from the
     model's only by its other model of the tissue; at 1 or 2 mm the floor holds the random field too (the
-    only cases seen from the placements other than the paper's are at 1 mm). An error naming the case set
-    when it has no such case."""
+    only cases seen from the placements other than the paper's are at 1 mm). ``settings``: the association
+    model's (None: the default model). An error naming the case set when it has no such case."""
     folder = Path(folder)
     levels = {float(m) for m in mismatches}
     wanted = {c["id"] for c in read_case_set(folder)["case"] if float(c["mismatch_mm"]) in levels
@@ -310,7 +311,7 @@ def tissue_floor(folder, progress: Callable[[int, int, str], None] | None = None
         T_cam_tibia = np.asarray(c["T_camera_tibia_ct"]) @ T_ct_model
         model = models.get(c["anatomy"])
         if model is None:
-            model = models[c["anatomy"]] = build_knee_model(anatomy, prior=prior)
+            model = models[c["anatomy"]] = build_knee_model(anatomy, settings, prior=prior)
         raw = case_points_cam(folder, c)
         points = voxel_downsample(raw, VOXEL_MM)
         Tf = tissue_floor_pose(anatomy, prior, points, T_cam_femur, T_cam_tibia, model=model)
@@ -332,6 +333,71 @@ def tissue_floor(folder, progress: Callable[[int, int, str], None] | None = None
             flexion_error_deg=_flexion_deg(Tf, tibia["posed"], T_tib) - true + shown))
     if progress:
         progress(len(out), len(out), "done")
+    return out
+
+
+#: The grid's placements :func:`placement_floor` measures by default: its cells moved by these fractions of a cell
+#: (:class:`knee.models.fem.scene.FemSettings`' ``grid_offset``).
+PLACEMENT_OFFSETS = (0.0, 0.25, 0.5, 0.75)
+
+
+@dataclass
+class PlacementFloorRow:
+    """One case's tissue floors (mean footprint errors, mm; :class:`TissueFloorRow`) under one grid: ``cells_across``
+    cells across the limb (:class:`knee.models.fem.scene.FemSettings`' ``n_across``) moved by ``offset`` of a
+    cell (its ``grid_offset``)."""
+
+    case: str
+    anatomy: str
+    camera: str
+    mismatch_mm: float
+    cells_across: int
+    offset: float
+    femur_mm: float
+    tibia_posed_mm: float
+
+
+def placement_floor(folder, cells_across=(7,), offsets=PLACEMENT_OFFSETS, mismatches=(0.0, 1.0),
+                    progress: Callable[[int, int, str], None] | None = None,
+                    select: Callable[[dict], bool] | None = None) -> list[PlacementFloorRow]:
+    """How much the association model's discretisation moves the tissue's floors (:func:`tissue_floor`): the floors
+    of every case at the skin mismatches ``mismatches`` (mm; ``select``: a further filter) under each grid of
+    ``cells_across`` cells across the limb, each moved by each of ``offsets`` (fractions of a cell in [0, 1); the
+    model's own grid: 7 across, offset 0). Where the floors of one case differ from one placement to the next,
+    the model's answer carries that much of where its cells happen to fall on the leg. Raises
+    :class:`KneeInputError` for a count below 1 or an offset outside [0, 1), before anything is measured."""
+    counts = [int(n) for n in cells_across]
+    if not counts or any(n < 1 or n != float(m) for n, m in zip(counts, cells_across)):
+        raise KneeInputError(f"the cells across the limb must be whole numbers of at least 1, got {list(cells_across)}")
+    offs = [float(o) for o in offsets]
+    if not offs or any(not 0.0 <= o < 1.0 for o in offs):
+        raise KneeInputError(f"the grid's offsets must be fractions of a cell in [0, 1), got {list(offsets)}")
+    out = []
+    grids = [(n, o) for n in counts for o in offs]
+    for k, (n, o) in enumerate(grids):
+        def said(i, m, text, k=k, n=n, o=o):
+            if progress:
+                progress(k * m + i, len(grids) * m, f"{n} across, offset {o:g}: {text}")
+        for r in tissue_floor(folder, said, select, mismatches, FemSettings(n_across=n, grid_offset=o)):
+            out.append(PlacementFloorRow(r.case, r.anatomy, r.camera, r.mismatch_mm, n, o, r.femur_mm, r.tibia_posed_mm))
+    return out
+
+
+def placement_spread(rows) -> dict:
+    """Per anatomy, grid (cells across) and skin mismatch, from :func:`placement_floor`'s rows:
+    ``{(anatomy, cells_across, mismatch_mm): {"offsets": the offsets (ascending), "median": the median femur
+    floor (mm) at each, "spread": each case's standard deviation of its femur floor over the offsets, averaged
+    over the cases (mm), "cases": how many}}``."""
+    out = {}
+    for key in sorted({(r.anatomy, r.cells_across, r.mismatch_mm) for r in rows}):
+        g = [r for r in rows if (r.anatomy, r.cells_across, r.mismatch_mm) == key]
+        offsets = sorted({r.offset for r in g})
+        cases = sorted({r.case for r in g})
+        table = np.full((len(cases), len(offsets)), np.nan)
+        for r in g:
+            table[cases.index(r.case), offsets.index(r.offset)] = r.femur_mm
+        out[key] = {"offsets": offsets, "median": [float(np.nanmedian(table[:, j])) for j in range(len(offsets))],
+                    "spread": float(np.nanmean(np.nanstd(table, axis=1))), "cases": len(cases)}
     return out
 
 

@@ -20,6 +20,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import rerun as rr  # noqa: E402
 
+from knee.app.experiments.skin_floor import placement_spread  # noqa: E402
 from knee.app.reports.compare import METHOD_COLOURS, compare_blueprint  # noqa: E402
 from knee.foundations import recording as R  # noqa: E402
 from knee.foundations.pointclouds import voxel_downsample  # noqa: E402
@@ -447,3 +448,38 @@ class CaseSetRecorder:
 
     def finish(self) -> None:
         R.close(self.rec)
+
+
+def plot_placement_floor(rows, path) -> dict:
+    """The femur's tissue floor under each placement of the grid (:func:`knee.app.experiments.skin_floor.placement_floor`'s
+    rows), a panel per anatomy: each case's floor against the grid's offset (thin lines), their median (thick), a
+    colour per grid (cells across) and a line style per skin mismatch. Flat lines: the answer does not depend on
+    where the cells fall. Returns :func:`knee.app.experiments.skin_floor.placement_spread`'s summary."""
+    summary = placement_spread(rows)
+    anatomies = sorted({r.anatomy for r in rows})
+    grids = sorted({r.cells_across for r in rows})
+    colours = dict(zip(grids, ("tab:blue", "tab:red", "tab:green", "tab:purple", "tab:orange", "tab:gray")))
+    styles = {0.0: "-", 1.0: "--", 2.0: ":"}
+    n = max(1, len(anatomies))
+    fig, axes = plt.subplots(1, n, figsize=(4.8 * n, 4.2), squeeze=False, sharey=True)
+    for ax, a in zip(axes[0], anatomies):
+        for (anatomy, cells, mm), d in summary.items():
+            if anatomy != a:
+                continue
+            ls = styles.get(mm, "-.")
+            for case in sorted({r.case for r in rows if (r.anatomy, r.cells_across, r.mismatch_mm) == (a, cells, mm)}):
+                pts = sorted((r.offset, r.femur_mm) for r in rows if r.case == case and r.cells_across == cells)
+                ax.plot(*zip(*pts), color=colours[cells], ls=ls, lw=0.7, alpha=0.35)
+            ax.plot(d["offsets"], d["median"], color=colours[cells], ls=ls, lw=2.2,
+                    label=f"{cells} across, {mm:g} mm: spread {d['spread']:.2f} mm ({d['cases']} views)")
+        ax.set_title(a, fontsize=10)
+        ax.set_xlabel("the grid moved by (fraction of a cell)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    axes[0][0].set_ylabel("the femur's tissue floor: footprint error (mm)")
+    fig.suptitle("The femur placed on the model's posed skin, every other step exact, by the grid's placement",
+                 fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110, format="png")
+    plt.close(fig)
+    return summary
