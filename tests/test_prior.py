@@ -295,10 +295,12 @@ class _FlatShank:
 def test_the_tibia_correction_finds_the_axial_rotation_a_non_round_shank_shows(volunteer):
     """A shank whose cross-section is not a circle shows the tibia's rotation about its own axis: points from
     a tibia turned 6 deg about it (and moved across) give the turn back with a weak prior; the prior's sd
-    on that rotation weighs it as on the others (a confident one keeps the prior's)."""
+    on that rotation weighs it as on the others (a confident one keeps the prior's), and the default's,
+    :data:`knee.models.prior.TIBIA_PRIOR_AXIAL_DEG`, wider than about the other axes, lets more of the turn
+    through than the others' would."""
     from trimesh.sample import sample_surface
 
-    from knee.models.prior import correct_tibia, small_pose
+    from knee.models.prior import TIBIA_PRIOR_AXIAL_DEG, TIBIA_PRIOR_DEG, correct_tibia, small_pose
 
     ph = _FlatShank(build_phantom(volunteer.params))
     sk = SkinModel(volunteer, ph)
@@ -307,9 +309,12 @@ def test_the_tibia_correction_finds_the_axial_rotation_a_non_round_shank_shows(v
     T = joint_to_pose(volunteer.motion_at(np.array([alpha]))[0][0]) @ small_pose(xi)
     p, _ = sample_surface(ph.skin_parts(np.eye(4))[1][0], 4000, seed=3)
     pts = transform_points(T, p[p[:, 1] < -40.0])
-    c = correct_tibia(sk, pts, alpha, sigma_mm=100.0, sigma_deg=90.0)
+    c = correct_tibia(sk, pts, alpha, sigma_mm=100.0, sigma_deg=90.0, sigma_axial_deg=None)  # None: sigma_deg
     np.testing.assert_allclose(c.rotation_deg, np.degrees(xi[:3]), atol=0.15)
     np.testing.assert_allclose(c.translation_mm, xi[3:], atol=0.2)
+    default = correct_tibia(sk, pts, alpha).rotation_deg[1]
+    as_others = correct_tibia(sk, pts, alpha, sigma_axial_deg=TIBIA_PRIOR_DEG).rotation_deg[1]
+    assert TIBIA_PRIOR_AXIAL_DEG > TIBIA_PRIOR_DEG and 0.5 < as_others + 0.5 < default < 6.0
     held = correct_tibia(sk, pts, alpha, sigma_mm=100.0, sigma_deg=90.0, sigma_axial_deg=0.01)
     assert abs(held.rotation_deg[1]) < 0.05
     # with the axial rotation held, the points cannot be fitted as well
