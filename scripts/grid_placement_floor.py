@@ -26,19 +26,6 @@ import sys
 from pathlib import Path
 
 
-def _numbers(text: str, kind, what: str) -> list:
-    """Comma-separated numbers of ``kind``, or a KneeInputError naming ``what``."""
-    from knee.foundations.errors import KneeInputError
-
-    try:
-        values = [kind(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        values = []
-    if not values:
-        raise KneeInputError(f"{what} must be comma-separated numbers, got {text!r}")
-    return values
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("cases", help="a case set folder (scripts/build_case_set.py)")
@@ -51,20 +38,17 @@ def main() -> int:
     ap.add_argument("--csv", default=None, help="write a row per view and grid placement here")
     ap.add_argument("--plot", default=None, help="draw every view's floor against the placement here (PNG)")
     args = ap.parse_args()
-    from knee.app.console import new_files, timed_progress
+    from knee.app.console import new_files, numbers, timed_progress
     from knee.app.experiments.case_set import read_case_set
     from knee.app.experiments.skin_floor import placement_floor, placement_spread
     from knee.foundations.errors import KneeError, KneeInputError
     from knee.foundations.files import staged_file
 
     try:
-        cells = _numbers(args.cells_across, float, "--cells-across")
-        if any(n < 1 or n != int(n) for n in cells):
-            raise KneeInputError(f"--cells-across must be whole numbers of at least 1, got {args.cells_across!r}")
-        offsets = _numbers(args.offsets, float, "--offsets")
-        if any(not 0.0 <= o < 1.0 for o in offsets):
-            raise KneeInputError(f"--offsets must be fractions of a cell in [0, 1), got {args.offsets!r}")
-        mismatches = _numbers(args.mismatches, float, "--mismatches")
+        # (the counts and the offsets are checked by placement_floor, before any model is built)
+        cells = numbers(args.cells_across, None, "--cells-across")
+        offsets = numbers(args.offsets, None, "--offsets")
+        mismatches = numbers(args.mismatches, None, "--mismatches")
         if any(not m >= 0.0 for m in mismatches):
             raise KneeInputError(f"--mismatches must be skin mismatches in mm (0 or more), got {args.mismatches!r}")
         cameras = {c.strip() for c in args.cameras.split(",") if c.strip()}
@@ -82,7 +66,7 @@ def main() -> int:
             raise KneeInputError(f"{args.cases}: no case from the {', '.join(sorted(cameras))} placement(s) at "
                                  f"{', '.join(f'{m:g}' for m in mismatches)} mm"
                                  + (f" whose id contains {args.only!r}" if args.only else ""))
-        rows = placement_floor(args.cases, [int(n) for n in cells], offsets, mismatches, timed_progress(), chosen)
+        rows = placement_floor(args.cases, cells, offsets, mismatches, timed_progress(), chosen)
     except KneeError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

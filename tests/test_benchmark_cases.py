@@ -1218,6 +1218,7 @@ def test_placement_spread_by_hand():
     p = d[("phantom", 7, 0.0)]
     # offset 0: 1, 2, 4 -> 2; offset 0.5: 3, 2, 1 -> 2; the views' sds 1, 0, 1.5 -> 2.5 / 3
     assert p["offsets"] == [0.0, 0.5] and p["median"] == [2.0, 2.0] and p["cases"] == 3
+    np.testing.assert_array_equal(p["table"], [[1.0, 3.0], [2.0, 2.0], [4.0, 1.0]])  # the views a, b, c
     assert p["spread"] == pytest.approx(2.5 / 3)
     assert d[("phantom", 14, 0.0)]["spread"] == 0.0 and d[("leg", 7, 1.0)]["median"] == [5.0]
 
@@ -1240,6 +1241,7 @@ def test_grid_placement_floor_script(small_case_set, tmp_path, capsys, run_scrip
     assert [f.name for f in tmp_path.iterdir() if f.name.startswith(".")] == []
     fresh = tmp_path / "fresh.csv"
     for argv, says in [(["--offsets", "0,1"], "fractions of a cell"), (["--cells-across", "0"], "whole numbers"),
+                       (["--cells-across", "7.5"], "whole numbers"), (["--offsets", "0,nan"], "comma-separated numbers"),
                        (["--mismatches", "one"], "comma-separated numbers"), (["--cameras", " , "], "name camera"),
                        (["--plot", tmp_path / "p.svg"], "give a .png file"), (["--plot", png], "exists; not overwritten")]:
         assert run_script("grid_placement_floor", [small_case_set, *argv, "--csv", fresh]) == 2

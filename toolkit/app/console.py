@@ -126,15 +126,15 @@ def at_least(lo: float, kind=int, hi: float | None = None):
     return parse
 
 
-def numbers(text: str, n: int, what: str, hint: str = "") -> np.ndarray:
-    """``n`` finite comma-separated numbers, or a one-line error naming ``what``."""
+def numbers(text: str, n: int | None, what: str, hint: str = "") -> np.ndarray:
+    """``n`` finite comma-separated numbers (None: one or more), or a one-line error naming ``what``."""
     try:
         v = np.array([float(x) for x in str(text).split(",")])
     except ValueError:
         v = np.zeros(0)
-    if v.size != n or not np.all(np.isfinite(v)):
-        count = {3: "three", 4: "four", 6: "six"}.get(n, str(n))
-        raise KneeInputError(f"{what} must be {count} comma-separated numbers{hint}, got {text!r}")
+    if (v.size != n if n is not None else v.size == 0) or not np.all(np.isfinite(v)):
+        count = "" if n is None else {3: "three ", 4: "four ", 6: "six "}.get(n, f"{n} ")
+        raise KneeInputError(f"{what} must be {count}comma-separated numbers{hint}, got {text!r}")
     return v
 
 

@@ -368,10 +368,12 @@ def placement_floor(folder, cells_across=(7,), offsets=PLACEMENT_OFFSETS, mismat
     :class:`KneeInputError` for a count below 1 or an offset outside [0, 1), before anything is measured."""
     counts = [int(n) for n in cells_across]
     if not counts or any(n < 1 or n != float(m) for n, m in zip(counts, cells_across)):
-        raise KneeInputError(f"the cells across the limb must be whole numbers of at least 1, got {list(cells_across)}")
+        raise KneeInputError("the cells across the limb must be whole numbers of at least 1, got "
+                             + ", ".join(f"{float(m):g}" for m in cells_across))
     offs = [float(o) for o in offsets]
     if not offs or any(not 0.0 <= o < 1.0 for o in offs):
-        raise KneeInputError(f"the grid's offsets must be fractions of a cell in [0, 1), got {list(offsets)}")
+        raise KneeInputError("the grid's offsets must be fractions of a cell in [0, 1), got "
+                             + ", ".join(f"{o:g}" for o in offs))
     out = []
     grids = [(n, o) for n in counts for o in offs]
     for k, (n, o) in enumerate(grids):
@@ -385,18 +387,23 @@ def placement_floor(folder, cells_across=(7,), offsets=PLACEMENT_OFFSETS, mismat
 
 def placement_spread(rows) -> dict:
     """Per anatomy, grid (cells across) and skin mismatch, from :func:`placement_floor`'s rows:
-    ``{(anatomy, cells_across, mismatch_mm): {"offsets": the offsets (ascending), "median": the median femur
-    floor (mm) at each, "spread": each case's standard deviation of its femur floor over the offsets, averaged
-    over the cases (mm), "cases": how many}}``."""
+    ``{(anatomy, cells_across, mismatch_mm): {"offsets": the offsets (ascending), "table": each case's femur
+    floor (mm) at each offset (cases, offsets; NaN where not measured), "median": the median at each offset,
+    "spread": each case's standard deviation over the offsets, averaged over the cases (mm), "cases": how
+    many}}``."""
+    groups = {}
+    for r in rows:
+        groups.setdefault((r.anatomy, r.cells_across, r.mismatch_mm), []).append(r)
     out = {}
-    for key in sorted({(r.anatomy, r.cells_across, r.mismatch_mm) for r in rows}):
-        g = [r for r in rows if (r.anatomy, r.cells_across, r.mismatch_mm) == key]
+    for key in sorted(groups):
+        g = groups[key]
         offsets = sorted({r.offset for r in g})
-        cases = sorted({r.case for r in g})
+        cases = {c: i for i, c in enumerate(sorted({r.case for r in g}))}
         table = np.full((len(cases), len(offsets)), np.nan)
+        column = {o: j for j, o in enumerate(offsets)}
         for r in g:
-            table[cases.index(r.case), offsets.index(r.offset)] = r.femur_mm
-        out[key] = {"offsets": offsets, "median": [float(np.nanmedian(table[:, j])) for j in range(len(offsets))],
+            table[cases[r.case], column[r.offset]] = r.femur_mm
+        out[key] = {"offsets": offsets, "table": table, "median": [float(m) for m in np.nanmedian(table, axis=0)],
                     "spread": float(np.nanmean(np.nanstd(table, axis=1))), "cases": len(cases)}
     return out
 

@@ -467,9 +467,8 @@ def plot_placement_floor(rows, path) -> dict:
             if anatomy != a:
                 continue
             ls = styles.get(mm, "-.")
-            for case in sorted({r.case for r in rows if (r.anatomy, r.cells_across, r.mismatch_mm) == (a, cells, mm)}):
-                pts = sorted((r.offset, r.femur_mm) for r in rows if r.case == case and r.cells_across == cells)
-                ax.plot(*zip(*pts), color=colours[cells], ls=ls, lw=0.7, alpha=0.35)
+            for view in d["table"]:
+                ax.plot(d["offsets"], view, color=colours[cells], ls=ls, lw=0.7, alpha=0.35)
             ax.plot(d["offsets"], d["median"], color=colours[cells], ls=ls, lw=2.2,
                     label=f"{cells} across, {mm:g} mm: spread {d['spread']:.2f} mm ({d['cases']} views)")
         ax.set_title(a, fontsize=10)
