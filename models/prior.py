@@ -793,6 +793,17 @@ UNSEEN_FLEXION_ERROR_DEG = (8.0, 18.0)
 WIDE_BAND_MM = 20.0
 
 
+def tibia_prior_weights(sigma_mm: float = TIBIA_PRIOR_MM, sigma_deg: float = TIBIA_PRIOR_DEG,
+                        sigma_axial_deg: float | None = TIBIA_PRIOR_AXIAL_DEG) -> np.ndarray:
+    """The inverse variances (6,) of the prior's Gaussian on a tibia correction ``xi`` (a rotation vector, rad,
+    then a translation, mm, in the tibia's frame): ``sigma_deg`` about the tibia's x and z, ``sigma_axial_deg``
+    about its own axis, y (None: ``sigma_deg``), ``sigma_mm`` along each axis. One definition for the
+    methods' correction (:func:`correct_tibia`) and the benchmark's floor with the methods' prior."""
+    axial = sigma_deg if sigma_axial_deg is None else sigma_axial_deg
+    return np.array([math.radians(sigma_deg) ** -2, math.radians(axial) ** -2, math.radians(sigma_deg) ** -2]
+                    + [float(sigma_mm) ** -2] * 3)
+
+
 @dataclass
 class TibiaCorrection:
     """The tibia's pose relative to the femur (model frame, (4, 4)) as the prior gives it (``T_prior``)
@@ -889,9 +900,7 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
     pts = voxel_downsample(np.asarray(points_model, float), VOXEL_MM)
     # the other parts stay where the prior has them: they only decide which points belong to the shank
     others = np.delete(posed.part_distances(pts), SHANK, axis=0).min(axis=0)
-    axial_deg = sigma_deg if sigma_axial_deg is None else sigma_axial_deg
-    prior_w = np.array([math.radians(sigma_deg) ** -2, math.radians(axial_deg) ** -2, math.radians(sigma_deg) ** -2]
-                       + [sigma_mm ** -2] * 3)
+    prior_w = tibia_prior_weights(sigma_mm, sigma_deg, sigma_axial_deg)
     near = BandDistances(shank, len(pts))  # most of the cloud (the thigh, the knee) is asked once
 
     def fit(xi, sd, first_wide):

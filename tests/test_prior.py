@@ -321,6 +321,25 @@ def test_the_tibia_correction_finds_the_axial_rotation_a_non_round_shank_shows(v
     assert held.rms_after > 3 * c.rms_after
 
 
+def test_the_tibia_priors_weights_are_one_definition_for_the_methods_and_the_floor(volunteer, monkeypatch):
+    """The prior's inverse variances by hand (3 deg about x and z, 5 about the tibia's axis, 2 mm), None for
+    the axial sd meaning the others'; the methods' correction and the benchmark's floor with the methods'
+    prior both take them from :func:`tibia_prior_weights` with the same defaults (a floor that kept 3 deg
+    about the tibia's axis after the methods moved to 5 would no longer be the methods' prior)."""
+    import inspect
+
+    from knee.app.experiments import skin_floor
+    from knee.models.prior import correct_tibia, tibia_prior_weights
+
+    w = tibia_prior_weights(2.0, 3.0, 5.0)
+    np.testing.assert_allclose(w, [(180 / math.pi / 3.0) ** 2, (180 / math.pi / 5.0) ** 2, (180 / math.pi / 3.0) ** 2,
+                                   0.25, 0.25, 0.25])
+    np.testing.assert_allclose(tibia_prior_weights(2.0, 3.0, None)[1], w[0])
+    defaults = lambda f: {k: v.default for k, v in inspect.signature(f).parameters.items()
+                          if k in ("sigma_mm", "sigma_deg", "sigma_axial_deg")}
+    assert defaults(skin_floor.prior_floor_poses) == defaults(correct_tibia) == defaults(tibia_prior_weights)
+
+
 def test_the_rotation_vectors_right_jacobian_against_finite_differences():
     """R(w + dw) = R(w) exp(J_r(w) dw) to first order: the Jacobian the tibia's correction takes where its
     rotation is, checked column by column against central differences, at a large and a tiny rotation."""

@@ -13,8 +13,9 @@ the random field (and the two images' sensor noise). Two floors:
   perfect skin and perfect kinematics: only the leg's pose unknown);
 - ``prior``: the whole cloud, the tibia's pose relative to the femur what the case set's kinematic prior
   gives at a free flexion, corrected as far as the points show it (a maximum a posteriori estimate with the
-  prior's Gaussian, :data:`knee.models.prior.TIBIA_PRIOR_MM` and ``TIBIA_PRIOR_DEG`` per component, as
-  the methods' tibia correction weighs it; each point with the field's RMS as its error, inflated for the
+  prior's Gaussian, :func:`knee.models.prior.tibia_prior_weights`: ``TIBIA_PRIOR_MM`` per translation,
+  ``TIBIA_PRIOR_DEG`` about the tibia's x and z and ``TIBIA_PRIOR_AXIAL_DEG`` about its own axis, as the
+  methods' tibia correction weighs it; each point with the field's RMS as its error, inflated for the
   field's correlation as :func:`knee.models.prior.effective_point_sd` inflates it): a perfect skin and the
   kinematics the methods are given. This is the floor of a method that reads the bones from the skin
   with this prior, whatever its tissue model.
@@ -29,7 +30,6 @@ they say how much of a method's error at a mismatch is the mismatch itself.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -47,8 +47,8 @@ from knee.foundations.pointclouds import icp, point_normals, voxel_downsample
 from knee.models.evaluation import pose_errors
 from knee.models.fem.methods import initialise_from_prior, quasi_static, register_to_posed_skin, tibia_path
 from knee.models.fem.scene import FemSettings, build_knee_model
-from knee.models.prior import (MIN_SEEN_SHANK, TIBIA_PRIOR_DEG, TIBIA_PRIOR_MM, VOXEL_MM, effective_point_sd,
-                               right_jacobian, small_pose)
+from knee.models.prior import (MIN_SEEN_SHANK, TIBIA_PRIOR_AXIAL_DEG, TIBIA_PRIOR_DEG, TIBIA_PRIOR_MM, VOXEL_MM,
+                               effective_point_sd, right_jacobian, small_pose, tibia_prior_weights)
 
 #: The ICP's reach (mm): the posed-skin registration's first reach, well beyond a 2 mm field.
 FLOOR_REACH_MM = 15.0
@@ -128,14 +128,16 @@ def floor_poses(points, clean, T_cam_femur, T_cam_tibia, joint_y: float) -> dict
 
 def prior_floor_poses(points, clean, T_cam_femur, T_cam_tibia, joint_y: float, tibia_pose, path, point_sd_mm: float,
                       sigma_mm: float = TIBIA_PRIOR_MM, sigma_deg: float = TIBIA_PRIOR_DEG,
-                      reach_mm: float = FLOOR_REACH_MM) -> tuple[np.ndarray, np.ndarray, float]:
+                      reach_mm: float = FLOOR_REACH_MM,
+                      sigma_axial_deg: float | None = TIBIA_PRIOR_AXIAL_DEG) -> tuple[np.ndarray, np.ndarray, float]:
     """The femur's and tibia's poses (4, 4; rest model coordinates to the camera) and the flexion (rad) that a
     clean skin cloud ``clean`` (P, 3; camera frame, the bones at ``T_cam_femur``, ``T_cam_tibia``) matched to
     ``points`` (Q, 3) gives with a kinematic prior: the femur's pose free; the tibia's anatomical frame in the
     femur's ``path(alpha) @ small_pose(xi)``, ``path`` (n,) rad -> (n, 4, 4) the prior's poses along its
     flexion (:func:`knee.models.fem.methods.tibia_path`), ``alpha`` free and the correction ``xi`` (rotation
-    vector, rad; translation, mm; in the tibia's frame) with the prior's Gaussian (sd ``sigma_deg`` per
-    rotation, ``sigma_mm`` per translation); the clean skin carried rigidly by each bone from its side of the
+    vector, rad; translation, mm; in the tibia's frame) with the methods' Gaussian prior
+    (:func:`knee.models.prior.tibia_prior_weights`: sd ``sigma_deg`` about the tibia's x and z,
+    ``sigma_axial_deg`` about its own axis, ``sigma_mm`` per translation); the clean skin carried rigidly by each bone from its side of the
     knee (the model frame's joint line ``joint_y``, mm, in each true bone's frame; ``tibia_pose``: the
     tibia's frame in the femur's at the scan). The maximum a posteriori estimate, Gauss-Newton on the
     point-to-plane distances (each point's error ``point_sd_mm``) of each point's nearest clean point within
@@ -156,7 +158,7 @@ def prior_floor_poses(points, clean, T_cam_femur, T_cam_tibia, joint_y: float, t
     tree_f, tree_t = cKDTree(c_f), cKDTree(c_t)
     alpha = float(pose_to_joint(invert_poses(Tf) @ A_true)[0])
     xi = np.zeros(6)
-    prior_w = np.r_[[math.radians(sigma_deg) ** -2] * 3, [sigma_mm ** -2] * 3]
+    prior_w = tibia_prior_weights(sigma_mm, sigma_deg, sigma_axial_deg)
 
     def tibia_local(v, a, S):
         return transform_points(invert_poses(path(np.array([a]))[0] @ S), v)
