@@ -90,12 +90,16 @@ def test_flexion_not_estimable_falls_back_to_the_papers_method(model, volunteer,
     calls = []
 
     def fake_paper(model, points, **k):
-        calls.append(len(points))
+        calls.append((len(points), k))
         return fm.Reconstruction("paper", 0.0, 3, 0.1, True, np.eye(4), rigid={"femur": np.eye(4), "tibia": np.eye(4)})
 
     monkeypatch.setattr(fm, "paper_method", fake_paper)
     r = fm.prior_method("links", model, volunteer, thigh_only)
-    assert calls == [len(thigh_only)] and r.method == "paper"
+    assert calls == [(len(thigh_only), fm.PAPER_AT_BEST)] and r.method == "paper"  # at its best reading
+    calls.clear()
+    fm.prior_method("paper", model, volunteer, thigh_only, bone_end="angle")  # a setting given overrides it
+    assert calls == [(len(thigh_only), {**fm.PAPER_AT_BEST, "bone_end": "angle"})]
+    calls.clear()
     assert any("fallback: the paper's method" in n and "shank" in n for n in r.notes)
     with pytest.raises(KneeInputError, match="shank"):
         fm.prior_method("kinematics", model, volunteer, thigh_only)
@@ -330,6 +334,49 @@ def test_papers_method_held_and_rebased_holds_the_femur_and_keeps_the_bone_phase
     assert lit.flexion_deg < lit.bone_phase_flexion_deg - 10.0 and lit_femur > 1.0
     assert best_femur == 0.0
     assert abs(best.flexion_deg - best.bone_phase_flexion_deg) < 5.0
+
+
+def test_skin_fit_is_the_capped_mean_distance_to_the_nearest_skin_point():
+    """Closed form: skin points on a 1 mm lattice in the plane z = 0, depth points above lattice points at
+    heights 0.5, 2 and 30 mm; the last counts the cap, not its distance."""
+    from knee.models.fem.methods import skin_fit_mm
+
+    g = np.arange(-20.0, 21.0)
+    skin = np.array([[x, y, 0.0] for x in g for y in g])
+    pts = np.array([[0.0, 0.0, 0.5], [3.0, -4.0, 2.0], [5.0, 5.0, 30.0]])
+    assert skin_fit_mm(skin, pts) == pytest.approx((0.5 + 2.0 + 10.0) / 3.0)
+    assert skin_fit_mm(skin, pts, cap=40.0) == pytest.approx((0.5 + 2.0 + 30.0) / 3.0)
+
+
+def test_papers_bone_phase_ended_by_the_fit_stops_near_the_clouds_flexion(volunteer):
+    """The cloud: one side of the model's own skin posed at 40 deg. The paper's criterion flexes the knee
+    past 80 deg whatever the cloud shows; ended by the fit, the bone phase keeps the step whose skin meets
+    the cloud best, near 40 deg (the bone forces flex it several degrees a step), and says so. An unknown
+    end is refused in one line."""
+    import math
+
+    import trimesh
+
+    from knee.foundations.errors import KneeInputError
+    from knee.models.fem.mapping import TrilinearMapping
+    from knee.models.fem.methods import bone_phase_note, initialise_from_prior, paper_method
+
+    m = build_association_model(volunteer)
+    initialise_from_prior(m, volunteer, math.radians(40.0))
+    v = TrilinearMapping(m.grid, m.skin_vertices).apply(m.solver.x)
+    skin = trimesh.Trimesh(v, m.skin_faces, process=False)
+    view = np.array([1.0, 0.0, 1.0]) / math.sqrt(2.0)  # a camera in front and to the side
+    pts, face = trimesh.sample.sample_surface(skin, 12000, seed=1)
+    cloud = pts[skin.face_normals[face] @ view > 0.2]
+    opts = dict(max_steps=45, hold_femur=True, rebase_after_bones=True)
+    by_angle = paper_method(build_association_model(volunteer), cloud, **opts)
+    by_fit = paper_method(build_association_model(volunteer), cloud, bone_end="fit", **opts)
+    assert by_angle.bone_phase_flexion_deg > 55.0
+    assert by_fit.bone_phase_end == "fit" and "met the depth points best" in bone_phase_note(by_fit)
+    assert abs(by_fit.bone_phase_flexion_deg - 40.0) < 12.0
+    assert abs(by_fit.flexion_deg - 40.0) < abs(by_angle.flexion_deg - 40.0)
+    with pytest.raises(KneeInputError, match="bone phase's end"):
+        paper_method(build_association_model(volunteer), cloud, bone_end="skin")
 
 
 def test_the_cloud_is_placed_on_the_posed_skin_along_the_thigh_axis_too(volunteer):
