@@ -671,7 +671,7 @@ def paper_method(model: AssociationModel, points, bone_force_scale: float = 1.0,
                        invert_poses(T_reg), model.grid, s.x.copy(), icp_fitness=fitness, steps_bone_phase=bone_steps,
                        bone_phase_end=bone_end, bone_phase_flexion_deg=bone_flex,
                        history={k: np.asarray(v) for k, v in hist.items()}, bone_nodes=bone_rest_nodes(model))
-    if bone_end in ("stalled", "cap", "crushed", "fit"):  # the paper's criterion not the end: say so
+    if bone_end in ("stalled", "cap", "crushed"):  # neither the paper's criterion nor the fit ended it: say so
         r.notes.append(bone_phase_note(r))
     return r
 
