@@ -336,6 +336,24 @@ def test_papers_method_held_and_rebased_holds_the_femur_and_keeps_the_bone_phase
     assert abs(best.flexion_deg - best.bone_phase_flexion_deg) < 5.0
 
 
+def _seen_side_of_posed_skin(model, prior, flexion_deg: float, n_samples: int):
+    """The model's skin posed by the FEM at ``flexion_deg`` (:func:`initialise_from_prior`, left on ``model``),
+    sampled at ``n_samples`` points (seed 1), and the part a camera in front and to the side sees."""
+    import math
+
+    import trimesh
+
+    from knee.models.fem.mapping import TrilinearMapping
+    from knee.models.fem.methods import initialise_from_prior
+
+    initialise_from_prior(model, prior, math.radians(flexion_deg))
+    v = TrilinearMapping(model.grid, model.skin_vertices).apply(model.solver.x)
+    skin = trimesh.Trimesh(v, model.skin_faces, process=False)
+    view = np.array([1.0, 0.0, 1.0]) / math.sqrt(2.0)
+    pts, face = trimesh.sample.sample_surface(skin, n_samples, seed=1)
+    return pts[skin.face_normals[face] @ view > 0.2]
+
+
 def test_skin_fit_is_the_capped_mean_distance_to_the_nearest_skin_point():
     """Closed form: skin points on a 1 mm lattice in the plane z = 0, depth points above lattice points at
     heights 0.5, 2 and 30 mm; the last counts the cap, not its distance."""
@@ -353,21 +371,10 @@ def test_papers_bone_phase_ended_by_the_fit_stops_near_the_clouds_flexion(volunt
     past 80 deg whatever the cloud shows; ended by the fit, the bone phase keeps the step whose skin meets
     the cloud best, near 40 deg (the bone forces flex it several degrees a step), and says so. An unknown
     end is refused in one line."""
-    import math
-
-    import trimesh
-
     from knee.foundations.errors import KneeInputError
-    from knee.models.fem.mapping import TrilinearMapping
-    from knee.models.fem.methods import bone_phase_note, initialise_from_prior, paper_method
+    from knee.models.fem.methods import bone_phase_note, paper_method
 
-    m = build_association_model(volunteer)
-    initialise_from_prior(m, volunteer, math.radians(40.0))
-    v = TrilinearMapping(m.grid, m.skin_vertices).apply(m.solver.x)
-    skin = trimesh.Trimesh(v, m.skin_faces, process=False)
-    view = np.array([1.0, 0.0, 1.0]) / math.sqrt(2.0)  # a camera in front and to the side
-    pts, face = trimesh.sample.sample_surface(skin, 12000, seed=1)
-    cloud = pts[skin.face_normals[face] @ view > 0.2]
+    cloud = _seen_side_of_posed_skin(build_association_model(volunteer), volunteer, 40.0, 12000)
     opts = dict(max_steps=45, hold_femur=True, rebase_after_bones=True)
     by_angle = paper_method(build_association_model(volunteer), cloud, **opts)
     by_fit = paper_method(build_association_model(volunteer), cloud, bone_end="fit", **opts)
@@ -385,21 +392,12 @@ def test_the_cloud_is_placed_on_the_posed_skin_along_the_thigh_axis_too(voluntee
     scanned extension) brings it back, with the transform that takes the cloud to the model."""
     import math
 
-    import trimesh
-
     from knee.foundations.conventions import transform_points
-    from knee.models.fem.mapping import TrilinearMapping
-    from knee.models.fem.methods import (MIN_THIGH_POINTS, POSED_SKIN_BELOW_WIDTHS, initialise_from_prior,
-                                         register_to_posed_skin)
+    from knee.models.fem.methods import MIN_THIGH_POINTS, POSED_SKIN_BELOW_WIDTHS, register_to_posed_skin
     from knee.models.prior import small_pose
 
     model = build_association_model(volunteer)
-    initialise_from_prior(model, volunteer, math.radians(60.0))
-    v = TrilinearMapping(model.grid, model.skin_vertices).apply(model.solver.x)
-    skin = trimesh.Trimesh(v, model.skin_faces, process=False)
-    view = np.array([1.0, 0.0, 1.0]) / math.sqrt(2.0)  # a camera in front and to the side
-    pts, face = trimesh.sample.sample_surface(skin, 8000, seed=1)
-    seen = pts[skin.face_normals[face] @ view > 0.2]
+    seen = _seen_side_of_posed_skin(model, volunteer, 60.0, 8000)
     T_off = small_pose(np.array([0.0, math.radians(3.0), 0.0, 0.0, 8.0, 0.0]))
     moved = transform_points(T_off, seen)
     T, fitness = register_to_posed_skin(model, moved)

@@ -565,7 +565,6 @@ def paper_method(model: AssociationModel, points, bone_force_scale: float = 1.0,
     it or show progress; the surface forces act in the "surface" phase only)."""
     if bone_end not in BONE_ENDS:
         raise KneeInputError(f"the bone phase's end must be one of {', '.join(BONE_ENDS)}, got {bone_end!r}")
-    end_by = bone_end
     model.reset()  # from the model as built, whatever ran on it before
     t_start = time.perf_counter()
     pts, fitness, T_reg = register_to_model(model, points)
@@ -580,12 +579,12 @@ def paper_method(model: AssociationModel, points, bone_force_scale: float = 1.0,
     hist = {"step": [], "flexion_deg": [], "reference_mm": [], "within": [], "skin_motion_mm": [],
             "iterations": [], "inverted": []}
     phase, bone_steps, calm, converged = "bone", 0, 0, False
-    bone_end, bone_flex, bone_flexions = "", float("nan"), []
+    ended_by, bone_flex, bone_flexions = "", float("nan"), []
     skin_prev = model.skin_vertices.copy()
     smap = surf.map
     extent = float(np.ptp(model.grid.X, axis=0).max())
     best = None  # "fit": (the fit, x, steps, flexion) of the bone phase's best step so far, the scan's pose first
-    if end_by == "fit":
+    if bone_end == "fit":
         fit_pts = voxel_downsample(pts, DEPTH_VOXEL_MM)
         best = (skin_fit_mm(smap.apply(s.x), fit_pts), s.x.copy(), 0, knee_angles(model)[0])
     try:
@@ -610,9 +609,9 @@ def paper_method(model: AssociationModel, points, bone_force_scale: float = 1.0,
                     bone_steps += 1
                     bone_flexions.append(flex)
                 stalled = bone_phase_stalled(bone_flexions, bone_stall_steps, bone_stall_deg)
-                angle = between < 100.0 and end_by == "angle"
+                angle = between < 100.0 and bone_end == "angle"
                 fitted = False
-                if end_by == "fit" and not crushed:
+                if bone_end == "fit" and not crushed:
                     fit = skin_fit_mm(smap.apply(s.x), fit_pts)
                     if fit < best[0]:
                         best = (fit, s.x.copy(), bone_steps, flex)
@@ -620,8 +619,8 @@ def paper_method(model: AssociationModel, points, bone_force_scale: float = 1.0,
                     if stalled and not fitted and bone.F[3] < PAPER_BONE_FORCES[3]:
                         # stopped flexing while the fit still improves: forces half as large again, up to
                         # the paper's, and the stall judged afresh from here
+                        # (F1-F3 of a held femur are zero and stay so)
                         bone.F = [min(f * BONE_FORCE_GROWTH, m) for f, m in zip(bone.F, PAPER_BONE_FORCES)]
-                        bone.F[:3] = [0.0] * 3 if held else bone.F[:3]
                         bone_flexions = [flex]
                         stalled = False
                 if crushed or angle or fitted or stalled or bone_steps >= max_steps // 3:
@@ -635,7 +634,7 @@ def paper_method(model: AssociationModel, points, bone_force_scale: float = 1.0,
                         s.invalidate()
                         inverted = check_state(model, k, extent)
                         flex, between = knee_angles(model)
-                    bone_end, bone_flex = ended, flex
+                    ended_by, bone_flex = ended, flex
                     phase = "surface"
                     if rebase_after_bones:
                         s.v[:] = 0.0
@@ -669,9 +668,9 @@ def paper_method(model: AssociationModel, points, bone_force_scale: float = 1.0,
     flex, _ = knee_angles(model)
     r = Reconstruction("paper", flex, len(hist["step"]), time.perf_counter() - t_start, converged,
                        invert_poses(T_reg), model.grid, s.x.copy(), icp_fitness=fitness, steps_bone_phase=bone_steps,
-                       bone_phase_end=bone_end, bone_phase_flexion_deg=bone_flex,
+                       bone_phase_end=ended_by, bone_phase_flexion_deg=bone_flex,
                        history={k: np.asarray(v) for k, v in hist.items()}, bone_nodes=bone_rest_nodes(model))
-    if bone_end in ("stalled", "cap", "crushed"):  # neither the paper's criterion nor the fit ended it: say so
+    if ended_by in ("stalled", "cap", "crushed"):  # neither the paper's criterion nor the fit ended it: say so
         r.notes.append(bone_phase_note(r))
     return r
 

@@ -66,7 +66,7 @@ from knee.foundations.pointclouds import backproject, voxel_downsample
 from knee.foundations.surfaces import SurfaceQuery
 from knee.models.fem.anatomy import bone_clearance, bone_queries, in_contact
 from knee.models.fem.depth import DepthNoise, default_camera, render_depth
-from knee.models.fem.methods import PAPER_AT_BEST, reconstruct_in_camera
+from knee.models.fem.methods import reconstruct_in_camera
 from knee.models.fem.scene import build_knee_model, phantom_anatomy
 from knee.models.fem.tissue import TetTissue, smooth_surface_field
 from knee.models.mechanism import Mechanism
@@ -542,8 +542,8 @@ def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T
     measured at the target points (ACL/PCL footprints from the prior's attachments, the epiphyses); the row,
     and with ``stages`` the errors of each stage of the method
     (:func:`knee.app.experiments.subject_cases.camera_stage_errors`; otherwise an empty list). The paper's
-    method runs at its best reading (:data:`knee.models.fem.methods.PAPER_AT_BEST`, which ``options`` may
-    override). ``on_result(case, anatomy, method, points_cam, truth, estimate, row)``, when given, gets the
+    method runs at its best reading (:data:`knee.models.fem.methods.PAPER_AT_BEST`, as
+    :func:`knee.models.fem.methods.prior_method` applies it; ``options`` may override it). ``on_result(case, anatomy, method, points_cam, truth, estimate, row)``, when given, gets the
     depth points and the true and estimated bones' poses (``{"femur": (4, 4), "tibia": (4, 4)}``, rest model
     coordinates to the camera; the estimate's are the rigid poses the errors are taken at); for a run that
     failed (:func:`run_case_set`) the points and poses are None. ``guess``: False leaves the case's rough pose
@@ -551,8 +551,6 @@ def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T
     pts = case_points_cam(folder, case)
     init = np.loadtxt(folder / case["initial_pose"]).reshape(4, 4)
     model = build_knee_model(anatomy, prior=prior)
-    if method == "paper":  # the paper's method at its best reading (the README lists the choices)
-        options = {**PAPER_AT_BEST, **options}
     t0, c0 = time.perf_counter(), time.process_time()
     recon, rough = reconstruct_in_camera(model, prior, pts, invert_poses(init @ T_ct_model) if guess else None, method,
                                          **options)
