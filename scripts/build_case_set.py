@@ -4,6 +4,7 @@ from a seed, then run it with ``knee compare CASE_SET --out OUT``.
     .venv/bin/python scripts/build_case_set.py --out cases [--seed 0] [--data ../shared/data]
         [--anatomies phantom,visible-human-male] [--families mechanism+deviation,measured] [--patella]
         [--flying 0.5] [--noise-correlation 3] [--hole-size 4] [--noise-sigma 1.6] [--skin-band 1]
+        [--truth-edge 0.05]
 
 Without the data folder, only the phantom's mechanism cases are built. The cases, the truth and what the
 methods are given: :mod:`knee.app.experiments.case_set`. About 2-5 min on 2 cores (the truth skins).
@@ -18,7 +19,7 @@ from pathlib import Path
 
 
 def main() -> int:
-    from knee.app.experiments.case_set import VH_SKIN_BAND_WIDTHS
+    from knee.app.experiments.case_set import TRUTH_EDGE_WIDTHS, VH_SKIN_BAND_WIDTHS
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True)
@@ -43,6 +44,10 @@ def main() -> int:
                     help="the lost pixels (2 %%) come in blobs about this many pixels across (0: one by one)")
     ap.add_argument("--noise-sigma", type=float, default=1.0, metavar="MM",
                     help="the depth error's standard deviation at 400 mm, growing with the square of the depth (1)")
+    ap.add_argument("--truth-edge", type=float, default=TRUTH_EDGE_WIDTHS, metavar="WIDTHS",
+                    help="the truth tissue's node spacing in femur widths "
+                         f"({TRUTH_EDGE_WIDTHS:g}; finer is closer to its converged answer and slower: at 0.05 a "
+                         "pose flexed to 90 deg takes several minutes)")
     args = ap.parse_args()
     from knee.app.experiments.case_set import build_case_set
     from knee.app.console import say, take_terminations_as_interrupts
@@ -62,7 +67,7 @@ def main() -> int:
                            tuple(f.strip() for f in args.families.split(",") if f.strip()),
                            progress=lambda s: say(f"[{time.perf_counter() - t0:5.0f} s] {s}"), patella=args.patella,
                            flying=args.flying, correlation_px=args.noise_correlation, hole_px=args.hole_size,
-                           sigma_mm=args.noise_sigma, skin_band=args.skin_band)
+                           sigma_mm=args.noise_sigma, skin_band=args.skin_band, truth_edge=args.truth_edge)
     except KneeError as e:
         print(f"build_case_set: error: {e}", file=sys.stderr)
         return 2

@@ -234,6 +234,20 @@ def test_case_set_cases_do_not_depend_on_the_subset_built(small_case_set, tmp_pa
         sigma = (b[both] / 400.0) ** 2  # the plain image's error at that depth, 1 mm at 400 mm; 1.5 mm in the other
         assert np.mean(both) > 0.9 * np.mean(b > 0)
         assert np.std((a[both] - b[both]) / (np.sqrt(1.0 + 1.5 ** 2) * sigma)) == pytest.approx(1.0, abs=0.15)
+    # with the truth's tissue on a coarser spacing: the same poses, views and noise, the index says so, and the
+    # skin seen moves (another discretisation of the same tissue) but by a fraction of a spacing (a builder that
+    # dropped the spacing would give the same images; one that scaled it wrongly, another leg)
+    assert tomllib.loads((small_case_set / "case-set.toml").read_text())["truth_edge_widths"] == 0.1
+    coarse = build_case_set(tmp_path / "coarse", seed=4, data=None, mechanism_flexions=(40.0,), mismatches=(1.0,),
+                            truth_edge=0.15)
+    assert tomllib.loads((coarse / "case-set.toml").read_text())["truth_edge_widths"] == 0.15
+    for c in read_case_set(coarse)["case"]:
+        f = full[c["id"]]
+        assert c["truth_tf"] == f["truth_tf"]
+        a, b = np.load(coarse / c["depth"]), np.load(small_case_set / f["depth"])
+        both = (a > 0) & (b > 0)
+        assert np.mean(both) > 0.8 * np.mean(b > 0)
+        assert 0.05 < np.median(np.abs(a[both] - b[both])) < 2.0
 
 
 def test_case_set_runs_and_measures_against_its_truth(small_case_set):
@@ -541,7 +555,9 @@ def test_case_set_build_refuses_bad_choices_before_writing(tmp_path):
                     ({"correlation_px": -2.0}, "noise correlation must lie from 0 to 100 pixels, got -2.0"),
                     ({"hole_px": float("nan")}, "hole size must lie from 0 to 100 pixels, got nan"),
                     ({"sigma_mm": -1.0}, "depth noise must lie from 0 to 50 mm, got -1.0"),
-                    ({"skin_band": 0.2}, "skin band must lie from 0.75 to 3 femur widths, got 0.2")):
+                    ({"skin_band": 0.2}, "skin band must lie from 0.75 to 3 femur widths, got 0.2"),
+                    ({"truth_edge": 0.5}, "truth tissue's node spacing must lie from 0.03 to 0.2 femur widths, got 0.5"),
+                    ({"truth_edge": float("nan")}, "node spacing must lie from 0.03 to 0.2 femur widths, got nan")):
         with pytest.raises(KneeInputError, match=msg):
             build_case_set(out, data=None, **{"seed": 0, **kw})
         assert not out.exists()
@@ -1247,6 +1263,39 @@ def test_grid_placement_floor_script(small_case_set, tmp_path, capsys, run_scrip
         assert run_script("grid_placement_floor", [small_case_set, *argv, "--csv", fresh]) == 2
         _one_line_error(capsys, says)
         assert not fresh.exists() and not (tmp_path / "p.svg").exists()
+
+
+def test_truth_convergence_script(small_case_set, tmp_path, capsys, run_script):
+    """``scripts/truth_convergence.py``: the 0 mm view's truth skin made again at two spacings, a row per spacing
+    and grid. The finest spacing's skin is its own reference (0 mm); the coarser one's lies off it over the knee,
+    but by less than a spacing; the two truths give the femur different floors (a floor that ignored the spacing
+    would not), each a few millimetres at most (a truth posed at another case's pose would put it further off).
+    The table has a row per spacing; bad spacings, grids and an output that exists: one line each, nothing
+    written."""
+    out = tmp_path / "rows.csv"
+    assert run_script("truth_convergence", [small_case_set, "--truth-edges", "0.2,0.15", "--csv", out]) == 0
+    text = capsys.readouterr().out
+    assert [ln.split("|")[3].strip() for ln in text.splitlines() if ln.startswith("| phantom | 7 |")] == ["0.2", "0.15"]
+    with open(out) as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["truth_edge"], r["cells_across"]) for r in rows] == [("0.2", "7"), ("0.15", "7")]
+    coarse, fine = rows
+    assert float(fine["skin_to_finest_mm"]) == 0.0
+    from knee.app.experiments.case_set import iter_cases
+
+    width = next(iter_cases(small_case_set))[1][0].width
+    assert 0.0 < float(coarse["skin_to_finest_mm"]) < 0.15 * width
+    assert float(coarse["femur_mm"]) != float(fine["femur_mm"])
+    assert max(float(coarse["femur_mm"]), float(fine["femur_mm"])) < 4.0
+    assert [f.name for f in tmp_path.iterdir() if f.name.startswith(".")] == []
+    fresh = tmp_path / "fresh.csv"
+    for argv, says in [(["--truth-edges", "0.5"], "from 0.03 to 0.2 femur widths, got 0.5"),
+                       (["--truth-edges", "0.1,x"], "comma-separated numbers"),
+                       (["--cells-across", "0"], "at least 1 cell across"), (["--cameras", " , "], "name camera"),
+                       (["--only", "nothing-such"], "no view at 0 mm"), (["--csv", out], "exists; not overwritten")]:
+        assert run_script("truth_convergence", [small_case_set, *argv] + ([] if "--csv" in argv else ["--csv", fresh])) == 2
+        _one_line_error(capsys, says)
+        assert not fresh.exists()
 
 
 def test_flexion_floor_table_counts_the_views_that_see_the_shank():

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from knee.app.console import ProgressBar, flexion_list, out_dir, say
-from knee.app.experiments.case_set import is_case_set, read_case_set, run_case_set
+from knee.app.experiments.case_set import TRUTH_EDGE_WIDTHS, is_case_set, read_case_set, run_case_set
 from knee.app.experiments.cases import compare_cases, prior_floor, truth_phantom
 from knee.app.experiments.skin_floor import skin_floor
 from knee.app.experiments.subject_cases import compare_subject
@@ -197,6 +197,8 @@ def run_cases(args) -> int:
         truth += f", depth errors correlated over {float(index['noise_correlation_px']):g} px"
     if index.get("noise_sigma_mm_at_400_mm", 1.0) != 1.0:
         truth += f", depth noise {float(index['noise_sigma_mm_at_400_mm']):g} mm at 400 mm"
+    if index.get("truth_edge_widths", TRUTH_EDGE_WIDTHS) != TRUTH_EDGE_WIDTHS:
+        truth += f", the truth's tissue at {float(index['truth_edge_widths']):g} femur widths"
     if index.get("hole_px"):
         truth += f", holes of about {float(index['hole_px']):g} px"
     if args.no_initial_pose:

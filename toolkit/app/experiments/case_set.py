@@ -68,7 +68,7 @@ from knee.models.fem.anatomy import bone_clearance, bone_queries, in_contact
 from knee.models.fem.depth import DepthNoise, default_camera, render_depth
 from knee.models.fem.methods import reconstruct_in_camera
 from knee.models.fem.scene import build_knee_model, phantom_anatomy
-from knee.models.fem.tissue import TetTissue, smooth_surface_field
+from knee.models.fem.tissue import EDGE_WIDTHS, TetTissue, smooth_surface_field
 from knee.models.mechanism import Mechanism
 from knee.models.phantom import build_phantom
 from knee.models.mechanism.params import (
@@ -104,6 +104,11 @@ MEASURED_FLEXIONS = (20.0, 30.0, 45.0)
 VH_SKIN_BAND_WIDTHS = 3.0
 #: The skin mismatch field's correlation length, in femoral widths.
 FIELD_WIDTHS = 0.25
+#: The truth tissue's node spacing, in femur widths (:data:`knee.models.fem.tissue.EDGE_WIDTHS`, the case sets'
+#: default). Its linear tetrahedra are not converged there: measured on seed 0's twelve 0 mm paper views (the
+#: femur's tissue floor, noise-free points, BENCHMARKS.md "Is the truth's tissue converged?"), refining it to
+#: 0.07 and 0.05 moves the phantom's floor along the thigh by 0.1-1.2 mm, about linearly with the spacing.
+TRUTH_EDGE_WIDTHS = EDGE_WIDTHS
 
 
 def template_prior(anatomy, template_name: str = "volunteer", with_pf: bool = False):
@@ -273,12 +278,22 @@ def case_rng(seed: int, *keys: str) -> np.random.Generator:
     return np.random.default_rng([int(seed), zlib.crc32("/".join(keys).encode("utf-8"))])
 
 
+def check_truth_edge(truth_edge) -> float:
+    """The truth tissue's node spacing (femur widths) as a float, or a one-line error: from 0.03 (about 2.5 mm on
+    an adult knee; finer takes hours a pose) to 0.2."""
+    number = isinstance(truth_edge, (int, float, np.integer, np.floating)) and not isinstance(truth_edge, bool)
+    if not (number and 0.03 <= truth_edge <= 0.2):  # also refuses NaN
+        shown = f"{float(truth_edge):g}" if number else repr(truth_edge)
+        raise KneeInputError(f"the truth tissue's node spacing must lie from 0.03 to 0.2 femur widths, got {shown}")
+    return float(truth_edge)
+
+
 def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible-human-male"),
                    families=("mechanism+deviation", "measured"), progress: Callable[[str], None] | None = None,
                    mechanism_flexions=MECHANISM_FLEXIONS, measured_flexions=MEASURED_FLEXIONS,
                    mismatches=MISMATCHES_MM, patella: bool = False, flying: float = 0.0,
                    correlation_px: float = 0.0, hole_px: float = 0.0, sigma_mm: float = 1.0,
-                   skin_band: float = VH_SKIN_BAND_WIDTHS) -> Path:
+                   skin_band: float = VH_SKIN_BAND_WIDTHS, truth_edge: float = TRUTH_EDGE_WIDTHS) -> Path:
     """Build the case set into ``out`` (a new folder; see the module docstring). ``data``: the folder
     holding ``visible-human-male/`` and ``lenhart2015/``; without it, the phantom's mechanism cases only.
     Each pose is seen from the paper's placement at every skin mismatch, and from the other placements at
@@ -293,7 +308,9 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
     errors are correlated and the size of the blobs the lost pixels come in (0: each pixel on its own);
     ``sigma_mm``: the depth error's standard deviation at 400 mm (growing with the square of the depth).
     ``skin_band``: how far (femur widths) either side of the joint line the Visible Human's skin and bones
-    are kept (:data:`VH_SKIN_BAND_WIDTHS`; 1 stands for a short scan, whose field of view ends near the knee)."""
+    are kept (:data:`VH_SKIN_BAND_WIDTHS`; 1 stands for a short scan, whose field of view ends near the knee).
+    ``truth_edge``: the truth tissue's node spacing in femur widths (:data:`TRUTH_EDGE_WIDTHS`, the tissue's
+    default; finer is closer to the tissue's converged answer and slower, see :data:`TRUTH_EDGE_WIDTHS`)."""
     out = Path(out)
     say = progress or (lambda text: None)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -302,6 +319,7 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
         raise KneeInputError(f"the flying pixels' share must lie from 0 to 1, got {flying!r}")
     if not (isinstance(skin_band, (int, float, np.integer, np.floating)) and 0.75 <= skin_band <= 3.0):
         raise KneeInputError(f"the skin band must lie from 0.75 to 3 femur widths, got {skin_band!r}")
+    check_truth_edge(truth_edge)
     for name, v, top, unit in (("noise correlation", correlation_px, 100.0, "pixels"),
                                ("hole size", hole_px, 100.0, "pixels"), ("depth noise", sigma_mm, 50.0, "mm")):
         if not (isinstance(v, (int, float, np.integer, np.floating)) and 0.0 <= v <= top):  # also refuses NaN
@@ -328,7 +346,8 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
         Tf = anatomical_frames(subject)["femur"]  # femur frame (the model's) -> CT
         say(f"{entry.name}: the tissue model's mesh")
         pat = truth_patella(subject, anatomy, Tf, truth) if patella else None
-        tissue = TetTissue(anatomy, seed=seed, patella=None if pat is None else pat[0])
+        tissue = TetTissue(anatomy, edge=float(truth_edge) * anatomy.width, seed=seed,
+                           patella=None if pat is None else pat[0])
         scan = anatomy.scan_tf
         poses = []
         for family in families:
@@ -376,7 +395,7 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
                         "truth_tf": pose_to_joint(T_tibia).tolist(),
                         "T_camera_femur_ct": (T_cam_model @ invert_poses(Tf)).tolist(),
                         "T_camera_tibia_ct": (T_cam_model @ rel @ invert_poses(Tf)).tolist()})
-    _write_index(out, seed, entries, cases, patella, noise)
+    _write_index(out, seed, entries, cases, patella, noise, truth_edge)
     return out
 
 
@@ -439,10 +458,11 @@ def truth_patella(subject, anatomy, T_ct_femur, truth: Mechanism):
     return patella, motion
 
 
-def _write_index(out: Path, seed: int, entries, cases, patella: bool = False, noise: DepthNoise | None = None) -> None:
+def _write_index(out: Path, seed: int, entries, cases, patella: bool = False, noise: DepthNoise | None = None,
+                 truth_edge: float = TRUTH_EDGE_WIDTHS) -> None:
     noise = noise or DepthNoise()
     lines = [f'format = "{FORMAT}"', f"version = {VERSION}", f"seed = {int(seed)}",
-             f"truth_patella = {'true' if patella else 'false'}", f"flying_pixels = {float(noise.flying)!r}",
+             f"truth_patella = {'true' if patella else 'false'}", f"truth_edge_widths = {float(truth_edge)!r}", f"flying_pixels = {float(noise.flying)!r}",
              f"noise_correlation_px = {float(noise.correlation_px)!r}", f"hole_px = {float(noise.hole_px)!r}",
              f"noise_sigma_mm_at_400_mm = {float(noise.sigma_at_ref * (400.0 / noise.ref_depth) ** 2)!r}", ""]
     for e in entries:

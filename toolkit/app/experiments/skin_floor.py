@@ -39,12 +39,16 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from knee.app.experiments.case_set import case_points_cam, iter_cases, read_case_set, seen_shank_points
+from knee.app.experiments.case_set import (PLACEMENTS, case_intrinsics, case_points_cam, check_truth_edge, iter_cases,
+                                           read_case_set, seen_shank_points)
 from knee.app.experiments.subject_cases import anatomy_targets
-from knee.foundations.conventions import invert_poses, matrix_to_cardan, pose_to_joint, transform_points
+from knee.foundations.conventions import invert_poses, joint_to_pose, matrix_to_cardan, pose_to_joint, transform_points
 from knee.foundations.errors import KneeInputError
-from knee.foundations.pointclouds import icp, point_normals, voxel_downsample
+from knee.foundations.pointclouds import backproject, icp, point_normals, voxel_downsample
+from knee.foundations.surfaces import SurfaceQuery
 from knee.models.evaluation import pose_errors
+from knee.models.fem.depth import default_camera, render_depth
+from knee.models.fem.tissue import TetTissue
 from knee.models.fem.methods import initialise_from_prior, quasi_static, register_to_posed_skin, tibia_path
 from knee.models.fem.scene import FemSettings, build_knee_model
 from knee.models.prior import (MIN_SEEN_SHANK, TIBIA_PRIOR_AXIAL_DEG, TIBIA_PRIOR_DEG, TIBIA_PRIOR_MM, VOXEL_MM,
@@ -483,3 +487,96 @@ def skin_floor(folder, progress: Callable[[int, int, str], None] | None = None,
     if progress:
         progress(len(rows), len(rows), "done")
     return rows
+
+
+@dataclass
+class TruthEdgeRow:
+    """One view's femur tissue floor (:func:`tissue_floor_pose`, mm) against the truth's skin re-posed with its
+    tissue on a spacing of ``truth_edge`` femur widths, under a model grid of ``cells_across`` cells across the
+    limb, and how far that skin lies from the finest spacing's over the knee (the median distance of its
+    vertices within a femur width of the joint line, mm; 0 at the finest)."""
+
+    case: str
+    anatomy: str
+    truth_edge: float
+    cells_across: int
+    femur_mm: float
+    skin_to_finest_mm: float
+    inverted: int
+
+
+def truth_edge_floor(folder, truth_edges=(0.1, 0.07, 0.05), cells_across=(7,),
+                     progress: Callable[[int, int, str], None] | None = None,
+                     select: Callable[[dict], bool] | None = None) -> list[TruthEdgeRow]:
+    """Whether the case set's truth is converged: every 0 mm view (``select``: a further filter) with its truth's
+    flexed skin made again by the truth's tissue (:class:`knee.models.fem.tissue.TetTissue`, the set's seed) on
+    each spacing of ``truth_edges`` (femur widths), rendered noise-free from the view's placement, and the femur's
+    tissue floor measured on those points under each model grid of ``cells_across`` cells across
+    (:class:`TruthEdgeRow`). Where a finer truth moves the floor, the case set's figures carry that much of the
+    truth's own discretisation. Raises :class:`KneeInputError` for a spacing outside
+    :func:`knee.app.experiments.case_set.check_truth_edge`'s range, a count below 1 or no 0 mm view."""
+    edges = sorted({check_truth_edge(e) for e in truth_edges}, reverse=True)
+    counts = [int(n) for n in cells_across]
+    if not edges or not counts or any(n < 1 or n != float(m) for n, m in zip(counts, cells_across)):
+        raise KneeInputError("give one or more truth spacings and grids of at least 1 cell across, got "
+                             f"{', '.join(f'{float(e):g}' for e in truth_edges)} and "
+                             f"{', '.join(f'{float(m):g}' for m in cells_across)}")
+    folder = Path(folder)
+    index = read_case_set(folder)
+    wanted = {c["id"] for c in index["case"] if float(c["mismatch_mm"]) == 0.0 and (select is None or select(c))}
+    if not wanted:
+        raise KneeInputError(f"{folder}: no view at 0 mm skin mismatch to re-make the truth's skin for")
+    per_anatomy = {}
+    for c, setup, _, _ in iter_cases(folder, lambda c: c["id"] in wanted):
+        per_anatomy.setdefault(c["anatomy"], (setup, []))[1].append(c)
+    total = sum(len(cs) for _, cs in per_anatomy.values()) * len(edges)
+    out, done = [], 0
+    for name, ((anatomy, prior, _), cases) in per_anatomy.items():
+        models = {n: build_knee_model(anatomy, FemSettings(n_across=n), prior=prior) for n in counts}
+        tg = anatomy_targets(anatomy, prior)
+        centre = np.array([0.0, anatomy.joint_y, 0.0])
+        skins = {}
+        for e in edges:
+            tissue = TetTissue(anatomy, edge=e * anatomy.width, seed=int(index.get("seed", 0)))
+            for c in cases:
+                if progress:
+                    progress(done, total, f"{c['id']}: the truth at {e:g} femur widths")
+                done += 1
+                T_tibia = joint_to_pose(np.asarray(c["truth_tf"], float))
+                posed = tissue.pose(T_tibia)
+                skin = posed.skin(tissue)
+                az, el, dist = PLACEMENTS[c["camera"]]
+                cam = default_camera(distance=dist, azimuth_deg=az, elevation_deg=el, target=centre)
+                pts = backproject(render_depth(skin.vertices, skin.faces, cam), case_intrinsics(
+                    {"intrinsics": [cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]]}), drop_mixed=True)
+                pts = voxel_downsample(transform_points(invert_poses(cam.T_cam_world), pts), VOXEL_MM)
+                rel = T_tibia @ invert_poses(anatomy.tibia_pose)
+                skins[(e, c["id"])] = skin
+                for n, model in models.items():
+                    Tf = tissue_floor_pose(anatomy, prior, pts, np.eye(4), rel, model=model)
+                    out.append(TruthEdgeRow(c["id"], name, e, n, pose_errors(tg, np.eye(4), rel, Tf, rel).femur.footprints.mean,
+                                            float("nan"), posed.inverted))
+        finest = edges[-1]
+        for r in out:
+            if r.anatomy == name and np.isnan(r.skin_to_finest_mm):
+                v = np.asarray(skins[(r.truth_edge, r.case)].vertices)
+                v = v[np.abs(v[:, 1] - anatomy.joint_y) < anatomy.width]
+                fine = skins[(finest, r.case)]
+                r.skin_to_finest_mm = 0.0 if r.truth_edge == finest else float(np.median(np.abs(
+                    SurfaceQuery(np.asarray(fine.vertices), np.asarray(fine.faces)).signed_distance(v))))
+    if progress:
+        progress(total, total, "done")
+    return out
+
+
+def truth_edge_table(rows) -> list[str]:
+    """A Markdown table of :func:`truth_edge_floor`'s rows: per anatomy and grid, at each truth spacing (coarsest
+    first), the median femur floor over the views (mm), the median of the views' skin distance to the finest
+    truth's over the knee (mm) and the inverted tetrahedra (median)."""
+    lines = ["| anatomy | cells across | truth spacing (femur widths) | views | femur floor, median (mm) | "
+             "skin to the finest truth's over the knee (mm) | inverted tetrahedra |", "|---|---:|---:|---:|---:|---:|---:|"]
+    for key in sorted({(r.anatomy, r.cells_across, -r.truth_edge) for r in rows}):
+        g = [r for r in rows if (r.anatomy, r.cells_across, -r.truth_edge) == key]
+        lines.append(f"| {key[0]} | {key[1]} | {-key[2]:g} | {len(g)} | {np.median([r.femur_mm for r in g]):.2f} | "
+                     f"{np.median([r.skin_to_finest_mm for r in g]):.2f} | {np.median([r.inverted for r in g]):.0f} |")
+    return lines
