@@ -20,8 +20,6 @@ About 1 s per view and placement with the model's 7 cells across, about 4 s with
 from __future__ import annotations
 
 import argparse
-import csv
-import dataclasses
 import sys
 from pathlib import Path
 
@@ -38,7 +36,7 @@ def main() -> int:
     ap.add_argument("--csv", default=None, help="write a row per view and grid placement here")
     ap.add_argument("--plot", default=None, help="draw every view's floor against the placement here (PNG)")
     args = ap.parse_args()
-    from knee.app.console import new_files, numbers, timed_progress
+    from knee.app.console import new_files, numbers, timed_progress, write_rows_csv
     from knee.app.experiments.case_set import read_case_set
     from knee.app.experiments.skin_floor import placement_floor, placement_spread
     from knee.foundations.errors import KneeError, KneeInputError
@@ -71,11 +69,7 @@ def main() -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     if args.csv:
-        with staged_file(args.csv) as tmp, open(tmp, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow([fl.name for fl in dataclasses.fields(rows[0])])
-            for r in rows:
-                w.writerow([f"{v:.4g}" if isinstance(v, float) else v for v in dataclasses.astuple(r)])
+        write_rows_csv(args.csv, rows)
     if args.plot:
         from knee.app.reports.case_set import plot_placement_floor
 

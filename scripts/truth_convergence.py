@@ -17,8 +17,6 @@ for a knee flexed to 90 deg (seed 0's six 0 mm paper views of one anatomy at 0.1
 from __future__ import annotations
 
 import argparse
-import csv
-import dataclasses
 import sys
 
 
@@ -32,10 +30,9 @@ def main() -> int:
     ap.add_argument("--only", default="", help="only the cases whose id contains this (e.g. an anatomy)")
     ap.add_argument("--csv", default=None, help="write a row per view, spacing and grid here")
     args = ap.parse_args()
-    from knee.app.console import new_files, numbers, timed_progress
+    from knee.app.console import new_files, numbers, timed_progress, write_rows_csv
     from knee.app.experiments.skin_floor import truth_edge_floor, truth_edge_table
     from knee.foundations.errors import KneeError, KneeInputError
-    from knee.foundations.files import staged_file
 
     try:
         edges = numbers(args.truth_edges, None, "--truth-edges")
@@ -50,11 +47,7 @@ def main() -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     if args.csv:
-        with staged_file(args.csv) as tmp, open(tmp, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow([fl.name for fl in dataclasses.fields(rows[0])])
-            for r in rows:
-                w.writerow([f"{v:.4g}" if isinstance(v, float) else v for v in dataclasses.astuple(r)])
+        write_rows_csv(args.csv, rows)
     print("\n".join(truth_edge_table(rows)))
     return 0
 

@@ -1291,7 +1291,7 @@ def test_truth_convergence_script(small_case_set, tmp_path, capsys, run_script):
     fresh = tmp_path / "fresh.csv"
     for argv, says in [(["--truth-edges", "0.5"], "from 0.03 to 0.2 femur widths, got 0.5"),
                        (["--truth-edges", "0.1,x"], "comma-separated numbers"),
-                       (["--cells-across", "0"], "at least 1 cell across"), (["--cameras", " , "], "name camera"),
+                       (["--cells-across", "0"], "whole numbers of at least 1"), (["--cameras", " , "], "name camera"),
                        (["--only", "nothing-such"], "no view at 0 mm"), (["--csv", out], "exists; not overwritten")]:
         assert run_script("truth_convergence", [small_case_set, *argv] + ([] if "--csv" in argv else ["--csv", fresh])) == 2
         _one_line_error(capsys, says)

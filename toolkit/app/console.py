@@ -7,6 +7,8 @@ Every check raises :class:`~knee.foundations.errors.KneeInputError` with one lin
 from __future__ import annotations
 
 import argparse
+import csv
+import dataclasses
 import logging
 import math
 import signal
@@ -17,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from knee.foundations.errors import EXIT_BAD_INPUT, KneeInputError
-from knee.foundations.files import check_output
+from knee.foundations.files import check_output, staged_file
 
 
 def error(message: str, code: int = EXIT_BAD_INPUT) -> int:
@@ -49,6 +51,16 @@ def new_files(*paths) -> None:
     for p in paths:
         if p is not None and Path(p).exists():
             raise KneeInputError(f"{p} exists; not overwritten (give a new file)")
+
+
+def write_rows_csv(path, rows) -> None:
+    """The scripts' tables of dataclass rows as CSV, written whole (:func:`knee.foundations.files.staged_file`):
+    a header of the fields, then a row each, floats to 4 significant digits."""
+    with staged_file(path) as tmp, open(tmp, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow([fl.name for fl in dataclasses.fields(rows[0])])
+        for r in rows:
+            w.writerow([f"{v:.4g}" if isinstance(v, float) else v for v in dataclasses.astuple(r)])
 
 
 def timed_progress():

@@ -65,7 +65,7 @@ from knee.foundations.files import read_text
 from knee.foundations.pointclouds import backproject, voxel_downsample
 from knee.foundations.surfaces import SurfaceQuery
 from knee.models.fem.anatomy import bone_clearance, bone_queries, in_contact
-from knee.models.fem.depth import DepthNoise, default_camera, render_depth
+from knee.models.fem.depth import Camera, DepthNoise, default_camera, render_depth
 from knee.models.fem.methods import reconstruct_in_camera
 from knee.models.fem.scene import build_knee_model, phantom_anatomy
 from knee.models.fem.tissue import EDGE_WIDTHS, TetTissue, smooth_surface_field
@@ -105,9 +105,9 @@ VH_SKIN_BAND_WIDTHS = 3.0
 #: The skin mismatch field's correlation length, in femoral widths.
 FIELD_WIDTHS = 0.25
 #: The truth tissue's node spacing, in femur widths (:data:`knee.models.fem.tissue.EDGE_WIDTHS`, the case sets'
-#: default). Its linear tetrahedra are not converged there: measured on seed 0's twelve 0 mm paper views (the
-#: femur's tissue floor, noise-free points, BENCHMARKS.md "Is the truth's tissue converged?"), refining it to
-#: 0.07 and 0.05 moves the phantom's floor along the thigh by 0.1-1.2 mm, about linearly with the spacing.
+#: default). Measured on seed 0's 0 mm paper views (the femur's tissue floor, noise-free points, BENCHMARKS.md "Is
+#: the truth's tissue converged?"): refined to 0.07 and 0.05, the Visible Human's and lenhart2015's floors move by
+#: 0.15 mm at most, the phantom's by 0.1-2.8 mm a view (most at 90 deg, where its tissue folds behind the knee).
 TRUTH_EDGE_WIDTHS = EDGE_WIDTHS
 
 
@@ -288,6 +288,13 @@ def check_truth_edge(truth_edge) -> float:
     return float(truth_edge)
 
 
+def placement_camera(anatomy, placement: str) -> Camera:
+    """The case set's camera at a placement of :data:`PLACEMENTS` (its name), aimed at the knee's centre, in the
+    anatomy's femur (model) frame."""
+    az, el, dist = PLACEMENTS[placement]
+    return default_camera(distance=dist, azimuth_deg=az, elevation_deg=el, target=np.array([0.0, anatomy.joint_y, 0.0]))
+
+
 def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible-human-male"),
                    families=("mechanism+deviation", "measured"), progress: Callable[[str], None] | None = None,
                    mechanism_flexions=MECHANISM_FLEXIONS, measured_flexions=MEASURED_FLEXIONS,
@@ -374,10 +381,10 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
                 verts = smooth_surface_field(skin.vertices, normals, mm, FIELD_WIDTHS * anatomy.width,
                                              case_rng(seed, pose_id))
                 cams = PLACEMENTS if mm == mismatches[len(mismatches) // 2] else {"paper": PLACEMENTS["paper"]}
-                for cname, (az, el, dist) in cams.items():
+                for cname in cams:
                     cid = f"{pose_id}-{cname}"
                     rng = case_rng(seed, cid)
-                    cam = default_camera(distance=dist, azimuth_deg=az, elevation_deg=el, target=centre)
+                    cam = placement_camera(anatomy, cname)
                     depth = noise.apply(render_depth(verts, skin.faces, cam), rng)
                     folder = out / "cases" / cid
                     folder.mkdir(parents=True)

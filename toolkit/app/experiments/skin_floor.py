@@ -39,7 +39,7 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from knee.app.experiments.case_set import (PLACEMENTS, case_intrinsics, case_points_cam, check_truth_edge, iter_cases,
+from knee.app.experiments.case_set import (case_points_cam, check_truth_edge, iter_cases, placement_camera,
                                            read_case_set, seen_shank_points)
 from knee.app.experiments.subject_cases import anatomy_targets
 from knee.foundations.conventions import invert_poses, joint_to_pose, matrix_to_cardan, pose_to_joint, transform_points
@@ -47,7 +47,7 @@ from knee.foundations.errors import KneeInputError
 from knee.foundations.pointclouds import backproject, icp, point_normals, voxel_downsample
 from knee.foundations.surfaces import SurfaceQuery
 from knee.models.evaluation import pose_errors
-from knee.models.fem.depth import default_camera, render_depth
+from knee.models.fem.depth import render_depth
 from knee.models.fem.tissue import TetTissue
 from knee.models.fem.methods import initialise_from_prior, quasi_static, register_to_posed_skin, tibia_path
 from knee.models.fem.scene import FemSettings, build_knee_model
@@ -363,6 +363,15 @@ class PlacementFloorRow:
     tibia_posed_mm: float
 
 
+def _grid_counts(cells_across) -> list[int]:
+    """The model grids' cells across the limb as whole numbers, or a one-line error."""
+    counts = [int(n) for n in cells_across]
+    if not counts or any(n < 1 or n != float(m) for n, m in zip(counts, cells_across)):
+        raise KneeInputError("the cells across the limb must be whole numbers of at least 1, got "
+                             + ", ".join(f"{float(m):g}" for m in cells_across))
+    return counts
+
+
 def placement_floor(folder, cells_across=(7,), offsets=PLACEMENT_OFFSETS, mismatches=(0.0, 1.0),
                     progress: Callable[[int, int, str], None] | None = None,
                     select: Callable[[dict], bool] | None = None) -> list[PlacementFloorRow]:
@@ -372,10 +381,7 @@ def placement_floor(folder, cells_across=(7,), offsets=PLACEMENT_OFFSETS, mismat
     model's own grid: 7 across, offset 0). Where the floors of one case differ from one placement to the next,
     the model's answer carries that much of where its cells happen to fall on the leg. Raises
     :class:`KneeInputError` for a count below 1 or an offset outside [0, 1), before anything is measured."""
-    counts = [int(n) for n in cells_across]
-    if not counts or any(n < 1 or n != float(m) for n, m in zip(counts, cells_across)):
-        raise KneeInputError("the cells across the limb must be whole numbers of at least 1, got "
-                             + ", ".join(f"{float(m):g}" for m in cells_across))
+    counts = _grid_counts(cells_across)
     offs = [float(o) for o in offsets]
     if not offs or any(not 0.0 <= o < 1.0 for o in offs):
         raise KneeInputError("the grid's offsets must be fractions of a cell in [0, 1), got "
@@ -516,11 +522,9 @@ def truth_edge_floor(folder, truth_edges=(0.1, 0.07, 0.05), cells_across=(7,),
     truth's own discretisation. Raises :class:`KneeInputError` for a spacing outside
     :func:`knee.app.experiments.case_set.check_truth_edge`'s range, a count below 1 or no 0 mm view."""
     edges = sorted({check_truth_edge(e) for e in truth_edges}, reverse=True)
-    counts = [int(n) for n in cells_across]
-    if not edges or not counts or any(n < 1 or n != float(m) for n, m in zip(counts, cells_across)):
-        raise KneeInputError("give one or more truth spacings and grids of at least 1 cell across, got "
-                             f"{', '.join(f'{float(e):g}' for e in truth_edges)} and "
-                             f"{', '.join(f'{float(m):g}' for m in cells_across)}")
+    if not edges:
+        raise KneeInputError("give one or more truth spacings")
+    counts = _grid_counts(cells_across)
     folder = Path(folder)
     index = read_case_set(folder)
     wanted = {c["id"] for c in index["case"] if float(c["mismatch_mm"]) == 0.0 and (select is None or select(c))}
@@ -534,8 +538,7 @@ def truth_edge_floor(folder, truth_edges=(0.1, 0.07, 0.05), cells_across=(7,),
     for name, ((anatomy, prior, _), cases) in per_anatomy.items():
         models = {n: build_knee_model(anatomy, FemSettings(n_across=n), prior=prior) for n in counts}
         tg = anatomy_targets(anatomy, prior)
-        centre = np.array([0.0, anatomy.joint_y, 0.0])
-        skins = {}
+        skins, rows = {}, []
         for e in edges:
             tissue = TetTissue(anatomy, edge=e * anatomy.width, seed=int(index.get("seed", 0)))
             for c in cases:
@@ -545,25 +548,25 @@ def truth_edge_floor(folder, truth_edges=(0.1, 0.07, 0.05), cells_across=(7,),
                 T_tibia = joint_to_pose(np.asarray(c["truth_tf"], float))
                 posed = tissue.pose(T_tibia)
                 skin = posed.skin(tissue)
-                az, el, dist = PLACEMENTS[c["camera"]]
-                cam = default_camera(distance=dist, azimuth_deg=az, elevation_deg=el, target=centre)
-                pts = backproject(render_depth(skin.vertices, skin.faces, cam), case_intrinsics(
-                    {"intrinsics": [cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]]}), drop_mixed=True)
-                pts = voxel_downsample(transform_points(invert_poses(cam.T_cam_world), pts), VOXEL_MM)
+                cam = placement_camera(anatomy, c["camera"])  # the view's own camera, in the model frame
+                pts = voxel_downsample(backproject(render_depth(skin.vertices, skin.faces, cam), cam.K,
+                                                   invert_poses(cam.T_cam_world), drop_mixed=True), VOXEL_MM)
                 rel = T_tibia @ invert_poses(anatomy.tibia_pose)
                 skins[(e, c["id"])] = skin
                 for n, model in models.items():
                     Tf = tissue_floor_pose(anatomy, prior, pts, np.eye(4), rel, model=model)
-                    out.append(TruthEdgeRow(c["id"], name, e, n, pose_errors(tg, np.eye(4), rel, Tf, rel).femur.footprints.mean,
-                                            float("nan"), posed.inverted))
-        finest = edges[-1]
-        for r in out:
-            if r.anatomy == name and np.isnan(r.skin_to_finest_mm):
-                v = np.asarray(skins[(r.truth_edge, r.case)].vertices)
-                v = v[np.abs(v[:, 1] - anatomy.joint_y) < anatomy.width]
-                fine = skins[(finest, r.case)]
-                r.skin_to_finest_mm = 0.0 if r.truth_edge == finest else float(np.median(np.abs(
-                    SurfaceQuery(np.asarray(fine.vertices), np.asarray(fine.faces)).signed_distance(v))))
+                    rows.append(TruthEdgeRow(c["id"], name, e, n, pose_errors(tg, np.eye(4), rel, Tf, rel).femur.footprints.mean,
+                                             0.0, posed.inverted))
+        finest = {c["id"]: SurfaceQuery(np.asarray(skins[(edges[-1], c["id"])].vertices),
+                                        np.asarray(skins[(edges[-1], c["id"])].faces)) for c in cases}
+        moved = {}  # (spacing, case): the skin's median distance to the finest truth's over the knee, once each
+        for (e, cid), skin in skins.items():
+            v = np.asarray(skin.vertices)
+            v = v[np.abs(v[:, 1] - anatomy.joint_y) < anatomy.width]
+            moved[(e, cid)] = 0.0 if e == edges[-1] else float(np.median(np.abs(finest[cid].signed_distance(v))))
+        for r in rows:
+            r.skin_to_finest_mm = moved[(r.truth_edge, r.case)]
+        out += rows
     if progress:
         progress(total, total, "done")
     return out
