@@ -600,6 +600,8 @@ def test_compare_on_a_case_set_bad_input_one_line_nothing_written(small_case_set
                                                              "not a parameter set"),
                               ("volunteer", ["--frames", "3"], "--frames goes with a subject folder, not a parameter set"),
                               ("volunteer", ["--no-initial-pose"], "--no-initial-pose goes with a case set"),
+                              ("volunteer", ["--cells-across", "9"], "--cells-across goes with a case set (a folder "
+                                                                     "with case-set.toml) or a subject folder"),
                               (tmp_path, ["--flexion", "30"], "--flexion goes with a parameter set, not a subject folder"),
                               (tmp_path, ["--perturb", "1"], "--perturb goes with a parameter set, not a subject folder")):
         assert main(["compare", str(model), *argv, "--out", str(out)]) == 2
@@ -682,6 +684,31 @@ def test_compare_on_a_case_set_without_its_rough_poses(small_case_set, tmp_path,
     for col in ("femur_footprints_mm", "tibia_footprints_mm"):
         assert abs(float(a[col]) - float(b[col])) < 1.0, (col, a[col], b[col])
     assert abs(float(a["flexion_estimated_deg"]) - float(b["flexion_estimated_deg"])) < 1.0
+
+
+def test_compare_on_a_case_set_with_a_finer_grid(small_case_set, tmp_path, monkeypatch, capsys):
+    """``--cells-across N`` builds every case's model with N cells across the limb (the grid's planes across x
+    and z one more), says so in the report's title, and runs the case."""
+    import csv
+
+    import knee.app.experiments.case_set as cs
+    from knee.app.cli import main
+
+    planes = []
+    original = cs.build_knee_model
+    monkeypatch.setattr(cs, "build_knee_model", lambda a, settings=None, prior=None: (
+        lambda m: planes.append((len(m.grid.axes[0]), len(m.grid.axes[2]))) or m)(original(a, settings, prior=prior)))
+    out = tmp_path / "fine"
+    assert main(["compare", str(small_case_set), "--methods", "kinematics", "--only", "1mm-paper", "--cells-across",
+                 "9", "--out", str(out), "--quiet"]) == 0
+    assert planes == [(10, 10)]
+    with pytest.raises(SystemExit) as e:  # refused by the parser, in one line
+        main(["compare", str(small_case_set), "--cells-across", "2", "--out", str(tmp_path / "no")])
+    assert e.value.code == 2 and "--cells-across: must be from 3 to 24, got 2" in capsys.readouterr().err
+    assert not (tmp_path / "no").exists()
+    assert "the model's grid 9 cells across" in (out / "compare.md").read_text()
+    (row,) = list(csv.DictReader((out / "compare.csv").open()))
+    assert not row["failed"] and float(row["femur_footprints_mm"]) < 20.0
 
 
 def _rrd_print(path) -> str:

@@ -86,6 +86,28 @@ def test_the_bones_of_a_subject_in_the_cameras_frame(case):
         np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9)
     assert set(r["tf_joint_coordinates"]) == {"flexion", "adduction", "internal_rotation", "anterior", "proximal",
                                               "lateral"}
+    assert r["model"]["cells_across"] == 7  # the model's default grid, said in the result
+    case["default_grid_cells"] = r["model"]["grid_cells"]
+
+
+def test_a_finer_grid_on_request(case):
+    """``--cells-across 12`` builds the model with 12 cells across the limb instead of 7 (more cells, said in
+    the result) and reads the same knee: the flexion within 2 deg of the truth and the femur within the default
+    run's bounds."""
+    out = case["tmp"] / "fine"
+    p = run("fem", case["dir"], "--prior", case["tmp"] / "prior.toml", "--cloud", case["tmp"] / "cloud.ply",
+            "--initial-pose", case["tmp"] / "pose.txt", "--cells-across", "12", "--out", out, "--quiet")
+    assert p.returncode == 0, p.stderr
+    r = json.loads((out / "result.json").read_text())
+    assert r["model"]["cells_across"] == 12
+    assert r["model"]["grid_cells"] > 2 * case.get("default_grid_cells", 0)
+    assert abs(r["flexion_deg"] - math.degrees(case["tf"][0])) < 2.0
+    err = np.linalg.inv(case["T_cam_ct"]) @ np.array(r["T_camera_femur_ct"])
+    assert np.degrees(Rotation.from_matrix(err[:3, :3]).magnitude()) < 3.0 and np.linalg.norm(err[:3, 3]) < 10.0
+    assert_clean_error(run("fem", case["dir"], "--prior", case["tmp"] / "prior.toml", "--cloud",
+                           case["tmp"] / "cloud.ply", "--cells-across", "2", "--out", case["tmp"] / "no"),
+                       "--cells-across", "from 3 to 24")
+    assert not (case["tmp"] / "no").exists()
 
 
 def test_bad_subject_input_is_one_line_and_writes_nothing(case, tmp_path):

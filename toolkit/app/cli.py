@@ -13,9 +13,11 @@
     knee osteotomy MODEL --bone tibia|femur --angle 8 [--plane px,py,pz,nx,ny,nz] [--hinge hx,hy,hz,ax,ay,az]
                    [--release mcl] [--trial CSV] [--mass 72] [--height 1.75] [--out DIR] [--force]
     knee compare MODEL [--truth MODEL] [--flexion 30:120:15] [--cameras oblique,frontal,lateral] [--out DIR]
-    knee compare CASE_SET [--methods links,kinematics,init,paper] [--only ID,...] [--out DIR]
+    knee compare CASE_SET [--methods links,kinematics,init,paper] [--only ID,...] [--cells-across 7] [--out DIR]
     knee fem MODEL [--flexion 90] [--truth MODEL] [--camera oblique|frontal|lateral|AZ,EL,DIST] [--rrd FILE]
              [--cloud FILE | --depth FILE --intrinsics fx,fy,cx,cy [--depth-scale 1]] [--keep-flying] [--pose FILE]
+    knee fem SUBJECT_DIR --prior FITTED.toml (--depth FILE --intrinsics fx,fy,cx,cy | --cloud FILE)
+             [--initial-pose FILE] [--method links|init|kinematics|paper] [--cells-across 7] --out DIR
 
 Angles in degrees, lengths in mm. Exit codes: 0 success; 2 bad input or an output that cannot be written
 (one line ``knee: error: ...``); 3 a numerical failure on good input (the mechanism does not assemble, a
@@ -31,7 +33,7 @@ import importlib
 import os
 import sys
 
-from knee.app.console import error, take_terminations_as_interrupts
+from knee.app.console import at_least, error, take_terminations_as_interrupts
 from knee.foundations.errors import (
     EXIT_BAD_INPUT,
     EXIT_INTERNAL,
@@ -45,6 +47,12 @@ from knee.foundations.errors import (
 #: models`` does not pay for open3d and matplotlib): it defines ``run(args) -> int``.
 COMMANDS = {"models": "models", "sweep": "sweep", "demo": "demo", "synth-subject": "synth_subject", "fit": "fit",
             "gait": "gait", "contact": "contact", "osteotomy": "osteotomy", "compare": "compare", "fem": "fem"}
+
+#: The finest grid ``--cells-across`` takes (cells across the limb; the matrix grows with their square).
+MAX_CELLS_ACROSS = 24
+CELLS_ACROSS_HELP = ("cells across the limb of the association model's grid (7). 14 halves the cells: on a real leg "
+                     "the femur no longer sits where the cells happen to fall, at about twice the time (README, "
+                     "'The model's grid')")
 
 
 def _gait_options(p) -> None:
@@ -154,6 +162,8 @@ def build_parser() -> argparse.ArgumentParser:
     co.add_argument("--no-initial-pose", action="store_true",
                     help="case set: leave each case's rough pose out (the global search finds the knee)")
     co.add_argument("--frames", type=int, help="subject: how many rows of the motion, spread over it (4)")
+    co.add_argument("--cells-across", type=at_least(3, int, MAX_CELLS_ACROSS), metavar="N",
+                    help=f"case set, subject: {CELLS_ACROSS_HELP}")
     co.add_argument("--truth", help="parameter set: the parameter set generating the truth (default: MODEL, with "
                                     "the prior = MODEL perturbed by --perturb)")
     co.add_argument("--flexion", help="parameter set: true flexion angles, FROM:TO:STEP or a list (30:120:15)")
@@ -174,6 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
     fe.add_argument("--prior", help="subject: the fitted parameter file (knee fit's fitted.toml), the kinematic prior")
     fe.add_argument("--method", choices=("links", "init", "kinematics", "paper"),
                     help="subject: (iii) links (default), (ii) init, (iv) kinematics, (i) paper")
+    fe.add_argument("--cells-across", type=at_least(3, int, MAX_CELLS_ACROSS), metavar="N", help=CELLS_ACROSS_HELP)
     fe.add_argument("--initial-pose", help="subject: text file with a rough 4x4 pose of the CT frame in the camera's "
                                            "frame (within about 30 deg and 50 mm); default: a global search")
     fe.add_argument("--out", help="subject: output folder (result.json, femur.stl, tibia.stl, fem.rrd, overlay.png)")

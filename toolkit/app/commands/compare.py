@@ -11,6 +11,7 @@ from knee.app.console import ProgressBar, flexion_list, out_dir, say
 from knee.app.experiments.case_set import TRUTH_EDGE_WIDTHS, is_case_set, read_case_set, run_case_set
 from knee.app.experiments.cases import compare_cases, prior_floor, truth_phantom
 from knee.app.experiments.skin_floor import skin_floor
+from knee.app.commands.fem_subject import model_settings
 from knee.app.experiments.subject_cases import compare_subject
 from knee.app.reports import case_set as report
 from knee.app.reports.compare import (
@@ -49,8 +50,8 @@ def camera_list(text: str) -> list[str]:
 
 #: The options each form of ``knee compare`` takes beyond --methods, --out, --force and --quiet (a case set
 #: carries its truths, priors, cameras and noise), and their defaults where the form takes them.
-FORM_OPTIONS = {"case set": ("only", "no_initial_pose"),
-                "subject folder": ("prior", "truth_motion", "frames", "cameras", "seed", "no_noise"),
+FORM_OPTIONS = {"case set": ("only", "no_initial_pose", "cells_across"),
+                "subject folder": ("prior", "truth_motion", "frames", "cameras", "seed", "no_noise", "cells_across"),
                 "parameter set": ("truth", "flexion", "cameras", "perturb", "seed", "no_noise")}
 OPTION_DEFAULTS = {"frames": 4, "flexion": "30:120:15", "cameras": "oblique", "perturb": 2.0, "seed": 3}
 _WHERE = {"case set": "a case set (a folder with case-set.toml)", "subject folder": "a subject folder",
@@ -164,7 +165,7 @@ def run_subject(args) -> int:
     bar = ProgressBar()
     rows = compare_subject(anatomy, prior, motion.tf[rows_idx], methods, tuple(azimuths),
                            None if args.no_noise else DepthNoise(), args.seed,
-                           None if args.quiet else (lambda i, n, t: bar(i / n, t)))
+                           None if args.quiet else (lambda i, n, t: bar(i / n, t)), model_settings(args))
     title = f"Subject {subject.name}: truth from {args.truth_motion}, prior {args.prior}"
     with staged_folder(out) as tmp:
         write_csv(rows, tmp / "compare.csv")
@@ -203,6 +204,8 @@ def run_cases(args) -> int:
         truth += f", holes of about {float(index['hole_px']):g} px"
     if args.no_initial_pose:
         truth += ", without the rough poses (the global search)"
+    if args.cells_across is not None:
+        truth += f", the model's grid {args.cells_across} cells across"
     say(f"knee compare: case set {args.model} (seed {index.get('seed')}{truth}), {n} cases x {len(methods)} methods")
     bar = ProgressBar()
     title = f"Case set {Path(args.model).name} (seed {index.get('seed')}{truth})"
@@ -210,7 +213,7 @@ def run_cases(args) -> int:
         recorder = report.CaseSetRecorder(tmp / "compare.rrd", methods)
         try:
             rows = run_case_set(args.model, methods, None if args.quiet else (lambda i, k, t: bar(i / k, t)), select,
-                                on_result=recorder, guess=not args.no_initial_pose)
+                                on_result=recorder, guess=not args.no_initial_pose, settings=model_settings(args))
         finally:
             recorder.finish()
         try:  # what a perfect model reaches at the skin mismatches, where the set has the views to say it

@@ -92,7 +92,7 @@ def run(args) -> int:
                              f"{truth.params.name} ({lo:.1f} to {hi:.1f} deg)")
     say(f"knee fem: building the association model of {mech.params.name} ...")
     t0 = time.perf_counter()
-    model = build_association_model(mech, FemSettings())
+    model = build_association_model(mech, fem_subject.model_settings(args) or FemSettings())
     say(f"  grid {tuple(int(v) for v in model.grid.shape)} ({len(model.grid.cells)} cells, {model.grid.n_nodes} nodes), "
         f"bones {len(model.femur.el.cells)} + {len(model.tibia.el.cells)} tetrahedra; {time.perf_counter() - t0:.1f} s")
     truth_tf, truth_info = None, None

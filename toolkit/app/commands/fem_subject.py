@@ -49,7 +49,7 @@ from knee.foundations.pointclouds import (backproject, load_point_cloud, mixed_p
                                          read_depth_image, sparse_points)
 from knee.models.fem.depth import Camera, render_depth  # noqa: E402
 from knee.models.fem.methods import reconstruct_in_camera  # noqa: E402
-from knee.models.fem.scene import build_knee_model  # noqa: E402
+from knee.models.fem.scene import FemSettings, build_knee_model  # noqa: E402
 from knee.models.mechanism import Mechanism  # noqa: E402
 from knee.models.mechanism.params import load_model  # noqa: E402
 
@@ -61,6 +61,13 @@ SILHOUETTE_COLOURS = {"femur": (31, 119, 180), "tibia": (255, 127, 14)}
 #: A turn of ``--initial-pose`` from where the points put the femur beyond which it is said (deg): well past
 #: the 30 deg it is meant to be within, as a pose given the other way round (the camera in the CT) is.
 INITIAL_POSE_WARN_DEG = 45.0
+
+
+def model_settings(args) -> FemSettings | None:
+    """The association model's settings the command line asks for (``--cells-across``), or None for its
+    defaults."""
+    n = getattr(args, "cells_across", None)
+    return None if n is None else FemSettings(n_across=int(n))
 
 
 def _read_pose(path) -> np.ndarray:
@@ -168,7 +175,7 @@ def run(args) -> int:
     say(f"knee fem: the association model of subject {subject.name} ...")
     t0 = time.perf_counter()
     anatomy = subject_anatomy(subject, prior.params)
-    model = build_knee_model(anatomy, prior=prior)
+    model = build_knee_model(anatomy, model_settings(args), prior=prior)
     frames = anatomical_frames(subject)
     T_ct_model = frames["femur"]  # model (femur frame) -> CT
     built = time.perf_counter() - t0
@@ -231,6 +238,7 @@ def run(args) -> int:
                 "steps": recon.steps, "converged": recon.converged,
                 "flying_pixels_left_out": len(flying)},
         "initial_pose_off": initial_off,
+        "model": {"grid_cells": len(model.grid.cells), "cells_across": model.settings.n_across},
         "seconds": {"model": built, "registration_and_method": seconds},
         "warnings": notes,
     }

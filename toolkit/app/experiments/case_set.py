@@ -67,7 +67,7 @@ from knee.foundations.surfaces import SurfaceQuery
 from knee.models.fem.anatomy import bone_clearance, bone_queries, in_contact
 from knee.models.fem.depth import Camera, DepthNoise, default_camera, render_depth
 from knee.models.fem.methods import reconstruct_in_camera
-from knee.models.fem.scene import build_knee_model, phantom_anatomy
+from knee.models.fem.scene import FemSettings, build_knee_model, phantom_anatomy
 from knee.models.fem.tissue import EDGE_WIDTHS, TetTissue, smooth_surface_field
 from knee.models.mechanism import Mechanism
 from knee.models.phantom import build_phantom
@@ -564,7 +564,8 @@ def case_points_cam(folder: Path, case: dict) -> np.ndarray:
 
 
 def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T_ct_model, stages: bool = False,
-             on_result: Callable | None = None, guess: bool = True, **options) -> tuple[CaseRow, list]:
+             on_result: Callable | None = None, guess: bool = True, settings: FemSettings | None = None,
+             **options) -> tuple[CaseRow, list]:
     """One method on one case: the depth image and the rough pose in, the bones in the camera's frame out,
     measured at the target points (ACL/PCL footprints from the prior's attachments, the epiphyses); the row,
     and with ``stages`` the errors of each stage of the method
@@ -574,10 +575,11 @@ def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T
     depth points and the true and estimated bones' poses (``{"femur": (4, 4), "tibia": (4, 4)}``, rest model
     coordinates to the camera; the estimate's are the rigid poses the errors are taken at); for a run that
     failed (:func:`run_case_set`) the points and poses are None. ``guess``: False leaves the case's rough pose
-    out (the knee found by the global search)."""
+    out (the knee found by the global search). ``settings``: the association model's
+    (:class:`knee.models.fem.scene.FemSettings`; None: its defaults), e.g. a finer grid."""
     pts = case_points_cam(folder, case)
     init = np.loadtxt(folder / case["initial_pose"]).reshape(4, 4)
-    model = build_knee_model(anatomy, prior=prior)
+    model = build_knee_model(anatomy, settings, prior=prior)
     t0, c0 = time.perf_counter(), time.process_time()
     recon, rough = reconstruct_in_camera(model, prior, pts, invert_poses(init @ T_ct_model) if guess else None, method,
                                          **options)
@@ -635,6 +637,7 @@ def run_case_set(folder, methods, progress: Callable[[int, int, str], None] | No
                  guess: bool = True, **options) -> list[CaseRow]:
     """Every method on every case of a case set (``select``: a filter on the cases; ``on_result``: as
     :func:`run_case`'s, called for failed runs too; ``guess``: False leaves the cases' rough poses out;
+    ``settings``, among ``options``, the association model's, as :func:`run_case` takes them; the other
     ``options`` go to :func:`knee.models.fem.methods.prior_method`); a run that fails is a row with its
     reason."""
     return [row for row, _ in _run_all(folder, methods, progress, select, on_result=on_result, guess=guess,

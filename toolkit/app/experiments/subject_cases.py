@@ -29,7 +29,7 @@ from knee.models.evaluation import pose_errors, target_errors, target_points
 from knee.models.fem.anatomy import KneeAnatomy
 from knee.models.fem.depth import Camera, DepthNoise, default_camera
 from knee.models.fem.methods import METHODS, STAGES, reconstruct_in_camera
-from knee.models.fem.scene import build_knee_model
+from knee.models.fem.scene import FemSettings, build_knee_model
 from knee.models.fem.tissue import TetTissue
 from knee.models.mechanism.solver import Mechanism
 
@@ -159,9 +159,11 @@ def camera_stage_errors(anatomy: KneeAnatomy, prior: Mechanism, recon, T_cam_wor
     return out
 
 
-def run_subject_case(case: SubjectCase, method: str, anatomy: KneeAnatomy, prior: Mechanism, seed: int = 0):
-    """One method on one case: a :class:`CompareRow`."""
-    model = build_knee_model(anatomy, prior=prior)
+def run_subject_case(case: SubjectCase, method: str, anatomy: KneeAnatomy, prior: Mechanism, seed: int = 0,
+                     settings: FemSettings | None = None):
+    """One method on one case: a :class:`CompareRow`. ``settings``: the association model's (None: its
+    defaults)."""
+    model = build_knee_model(anatomy, settings, prior=prior)
     t0 = time.perf_counter()
     T_model_cam = case.camera.T_world_cam  # the camera's frame to the model (femur) frame, the truth
     recon, rough = reconstruct_in_camera(model, prior, case.points,
@@ -175,8 +177,10 @@ def run_subject_case(case: SubjectCase, method: str, anatomy: KneeAnatomy, prior
 
 def compare_subject(anatomy: KneeAnatomy, prior: Mechanism, motion_tf, methods=METHODS, azimuths=(35.0,),
                     noise=DepthNoise(), seed: int = 0,
-                    progress: Callable[[int, int, str], None] | None = None) -> list[CompareRow]:
-    """Every method on every case of :func:`subject_cases`; a run that fails is a row with its reason."""
+                    progress: Callable[[int, int, str], None] | None = None,
+                    settings: FemSettings | None = None) -> list[CompareRow]:
+    """Every method on every case of :func:`subject_cases` (``settings``: the association model's); a run
+    that fails is a row with its reason."""
     cases = subject_cases(anatomy, motion_tf, azimuths, noise, seed)
     rows, total = [], len(cases) * len(methods)
     for i, case in enumerate(cases):
@@ -184,7 +188,7 @@ def compare_subject(anatomy: KneeAnatomy, prior: Mechanism, motion_tf, methods=M
             if progress:
                 progress(i * len(methods) + j, total, f"{method} at {case.flexion_deg:.1f} deg, {case.label}")
             try:
-                rows.append(run_subject_case(case, method, anatomy, prior, seed))
+                rows.append(run_subject_case(case, method, anatomy, prior, seed, settings))
             except KneeError as e:
                 rows.append(CompareRow(method, case.label, case.flexion_deg, failed=str(e)))
     if progress:
