@@ -702,9 +702,16 @@ def test_compare_on_a_case_set_with_a_finer_grid(small_case_set, tmp_path, monke
     assert main(["compare", str(small_case_set), "--methods", "kinematics", "--only", "1mm-paper", "--cells-across",
                  "9", "--out", str(out), "--quiet"]) == 0
     assert planes == [(10, 10)]
+    assert main(["compare", str(small_case_set), "--methods", "kinematics", "--only", "1mm-paper", "--cells-across",
+                 "9,5", "--out", str(tmp_path / "x-only"), "--quiet"]) == 0
+    assert planes[1] == (10, 6) and "the model's grid 9 x 5 cells across" in (tmp_path / "x-only" / "compare.md").read_text()
     with pytest.raises(SystemExit) as e:  # refused by the parser, in one line
         main(["compare", str(small_case_set), "--cells-across", "2", "--out", str(tmp_path / "no")])
     assert e.value.code == 2 and "--cells-across: must be from 3 to 24, got 2" in capsys.readouterr().err
+    for bad, says in (("9,2", "must be from 3 to 24, got 2"), ("9,9,9", "must be N or NX,NZ, got '9,9,9'")):
+        with pytest.raises(SystemExit):
+            main(["compare", str(small_case_set), "--cells-across", bad, "--out", str(tmp_path / "no")])
+        assert says in capsys.readouterr().err
     assert not (tmp_path / "no").exists()
     assert "the model's grid 9 cells across" in (out / "compare.md").read_text()
     (row,) = list(csv.DictReader((out / "compare.csv").open()))

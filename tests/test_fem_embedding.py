@@ -87,6 +87,26 @@ def test_grid_offset_moves_the_same_cells():
         build_grid(skin, 7, 18.0, offset=1.0)
 
 
+def test_cells_across_x_and_z_apart():
+    """A pair (x, z) of cells across: x gets the first count and z the second, each spanning the skin's box
+    evenly, with or without an offset; the kept volume still the skin's; a count below 1 or three counts are
+    refused. Catches the pair swapped, or one count used for both."""
+    from knee.foundations.errors import KneeInputError
+
+    skin = trimesh.creation.capsule(height=200.0, radius=50.0, count=[32, 32])
+    skin.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+    for offset, extra in ((0.0, 0), (0.5, 1)):
+        g = build_grid(skin, (12, 5), 18.0, joint_y=0.0, offset=offset)
+        assert (len(g.axes[0]) - 1, len(g.axes[2]) - 1) == (12 + extra, 5 + extra)
+        lo, hi = skin.bounds[0] - 1.0, skin.bounds[1] + 1.0
+        assert np.allclose(np.diff(g.axes[0]), (hi[0] - lo[0]) / 12) and np.allclose(np.diff(g.axes[2]), (hi[2] - lo[2]) / 5)
+        assert (g.cell_volumes * g.weights).sum() == pytest.approx(skin.volume, rel=0.05)
+    assert len(build_grid(skin, 6, 18.0).axes[2]) == len(build_grid(skin, (6, 6), 18.0).axes[2]) == 7
+    for bad in (0, (7, 0), (7, 7, 7)):
+        with pytest.raises(KneeInputError, match="n_across"):
+            build_grid(skin, bad, 18.0)
+
+
 def test_fem_settings_reach_the_grid_and_the_tissue_cells(volunteer):
     """FemSettings' grid_offset and soft_element reach the model built: its grid is the offset one (one more
     cell across, moved by the offset) and its tissue stiffness the named element's, computed independently

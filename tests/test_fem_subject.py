@@ -93,7 +93,7 @@ def test_the_bones_of_a_subject_in_the_cameras_frame(case):
 def test_a_finer_grid_on_request(case):
     """``--cells-across 12`` builds the model with 12 cells across the limb instead of 7 (more cells, said in
     the result) and reads the same knee: the flexion within 2 deg of the truth and the femur within the default
-    run's bounds."""
+    run's bounds. ``12,7`` refines x only (fewer cells than 12 each way, more than 7)."""
     out = case["tmp"] / "fine"
     p = run("fem", case["dir"], "--prior", case["tmp"] / "prior.toml", "--cloud", case["tmp"] / "cloud.ply",
             "--initial-pose", case["tmp"] / "pose.txt", "--cells-across", "12", "--out", out, "--quiet")
@@ -101,6 +101,14 @@ def test_a_finer_grid_on_request(case):
     r = json.loads((out / "result.json").read_text())
     assert r["model"]["cells_across"] == 12
     assert r["model"]["grid_cells"] > 2 * case.get("default_grid_cells", 0)
+    p = run("fem", case["dir"], "--prior", case["tmp"] / "prior.toml", "--cloud", case["tmp"] / "cloud.ply",
+            "--initial-pose", case["tmp"] / "pose.txt", "--cells-across", "12,7", "--out", case["tmp"] / "x-only",
+            "--quiet")
+    assert p.returncode == 0, p.stderr
+    rx = json.loads((case["tmp"] / "x-only" / "result.json").read_text())
+    assert rx["model"]["cells_across"] == [12, 7]
+    assert case.get("default_grid_cells", 0) < rx["model"]["grid_cells"] < r["model"]["grid_cells"]
+    assert abs(rx["flexion_deg"] - math.degrees(case["tf"][0])) < 2.0
     assert abs(r["flexion_deg"] - math.degrees(case["tf"][0])) < 2.0
     err = np.linalg.inv(case["T_cam_ct"]) @ np.array(r["T_camera_femur_ct"])
     assert np.degrees(Rotation.from_matrix(err[:3, :3]).magnitude()) < 3.0 and np.linalg.norm(err[:3, 3]) < 10.0

@@ -99,29 +99,37 @@ def graded_axis(lo: float, hi: float, fine: float, coarse: float, centre: float,
     return np.array(sorted(set([c] + up + down)))
 
 
-def build_grid(skin, n_across: int = 7, element_size: float | None = 12.0, n_along: int | None = None,
-               margin: float = 1.0, joint_y: float | None = None, joint_size: float = 3.0,
-               joint_half_width: float = 15.0, growth: float = 1.3, offset: float = 0.0) -> SparseGrid:
-    """Build the sparse grid around a closed skin mesh (trimesh), see the module docstring. ``offset``
-    (a fraction of a cell, in [0, 1)): the same cells moved by that fraction across x and z (so one more cell
-    spans each) and the joint line's grading by that fraction of ``joint_size``: another placement of the
-    same discretisation."""
-    if n_across < 1:
-        raise KneeInputError(f"n_across must be at least 1, got {n_across}")
+def across_counts(n_across) -> tuple[int, int]:
+    """The cells across x and z of ``n_across``: one count for both, or a pair (x, z)."""
+    counts = (n_across, n_across) if np.ndim(n_across) == 0 else tuple(n_across)
+    if len(counts) != 2 or any(int(n) != n or n < 1 for n in counts):
+        raise KneeInputError(f"n_across must be a whole number of at least 1 or a pair of them (x, z), got {n_across}")
+    return int(counts[0]), int(counts[1])
+
+
+def build_grid(skin, n_across: int | tuple[int, int] = 7, element_size: float | None = 12.0,
+               n_along: int | None = None, margin: float = 1.0, joint_y: float | None = None,
+               joint_size: float = 3.0, joint_half_width: float = 15.0, growth: float = 1.3,
+               offset: float = 0.0) -> SparseGrid:
+    """Build the sparse grid around a closed skin mesh (trimesh), see the module docstring. ``n_across``: the
+    cells across x and z, one count for both or a pair (x, z). ``offset`` (a fraction of a cell, in [0, 1)): the
+    same cells moved by that fraction across x and z (so one more cell spans each) and the joint line's grading
+    by that fraction of ``joint_size``: another placement of the same discretisation."""
+    nx_, nz_ = across_counts(n_across)
     if not 0.0 <= offset < 1.0:
         raise KneeInputError(f"the grid's offset must be a fraction of a cell in [0, 1), got {offset}")
     skin = closed_surface(skin, "skin")
     lo = np.asarray(skin.bounds[0], float) - margin
     hi = np.asarray(skin.bounds[1], float) + margin
     if offset > 0.0:
-        h = (hi - lo) / n_across
-        ax = lo[0] - offset * h[0] + h[0] * np.arange(n_across + 2)
-        az = lo[2] - offset * h[2] + h[2] * np.arange(n_across + 2)
+        hx, hz = (hi[0] - lo[0]) / nx_, (hi[2] - lo[2]) / nz_
+        ax = lo[0] - offset * hx + hx * np.arange(nx_ + 2)
+        az = lo[2] - offset * hz + hz * np.arange(nz_ + 2)
         if joint_y is not None:
             joint_y = joint_y + offset * joint_size
     else:
-        ax = np.linspace(lo[0], hi[0], n_across + 1)
-        az = np.linspace(lo[2], hi[2], n_across + 1)
+        ax = np.linspace(lo[0], hi[0], nx_ + 1)
+        az = np.linspace(lo[2], hi[2], nz_ + 1)
     if n_along is not None:
         if n_along < 1:
             raise KneeInputError(f"n_along must be at least 1, got {n_along}")

@@ -45,7 +45,8 @@ BONE_DENSITY = 1.9e-9   # tonne/mm^3
 
 @dataclass
 class FemSettings:
-    """Settings of the association model (mm, MPa, N/mm, s). ``n_across`` cells across x and z;
+    """Settings of the association model (mm, MPa, N/mm, s). ``n_across`` cells across x and z (one count
+    for both, or a pair (x, z): x is the femur frame's anteroposterior axis, z its medio-lateral one);
     ``element_size`` along the limb, graded down to ``joint_size`` within ``joint_half_width`` of the joint
     line (``n_along`` instead gives a uniform grid, e.g. the paper's 300); ``shaft_length`` of the phantom
     bones; ``cartilage`` set-back of the articular surfaces; materials, collateral spring stiffness,
@@ -55,7 +56,7 @@ class FemSettings:
     the paper's ``"trilinear"``, or ``"incompatible"``, which bends without spurious shear). Both measured on
     the honest benchmark and left at the paper's (BENCHMARKS.md)."""
 
-    n_across: int = 7
+    n_across: int | tuple = 7
     element_size: float = 18.0
     joint_size: float = 3.0
     joint_half_width: float = 15.0

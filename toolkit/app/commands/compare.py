@@ -11,7 +11,7 @@ from knee.app.console import ProgressBar, flexion_list, out_dir, say
 from knee.app.experiments.case_set import TRUTH_EDGE_WIDTHS, is_case_set, read_case_set, run_case_set
 from knee.app.experiments.cases import compare_cases, prior_floor, truth_phantom
 from knee.app.experiments.skin_floor import skin_floor
-from knee.app.commands.fem_subject import model_settings
+from knee.app.commands.fem_subject import grid_label, model_settings
 from knee.app.experiments.subject_cases import compare_subject
 from knee.app.reports import case_set as report
 from knee.app.reports.compare import (
@@ -205,7 +205,7 @@ def run_cases(args) -> int:
     if args.no_initial_pose:
         truth += ", without the rough poses (the global search)"
     if args.cells_across is not None:
-        truth += f", the model's grid {args.cells_across} cells across"
+        truth += f", the model's grid {grid_label(args.cells_across)} cells across"
     say(f"knee compare: case set {args.model} (seed {index.get('seed')}{truth}), {n} cases x {len(methods)} methods")
     bar = ProgressBar()
     title = f"Case set {Path(args.model).name} (seed {index.get('seed')}{truth})"

@@ -64,10 +64,15 @@ INITIAL_POSE_WARN_DEG = 45.0
 
 
 def model_settings(args) -> FemSettings | None:
-    """The association model's settings the command line asks for (``--cells-across``), or None for its
-    defaults."""
+    """The association model's settings the command line asks for (``--cells-across``: a count or a pair (x,
+    z)), or None for its defaults."""
     n = getattr(args, "cells_across", None)
-    return None if n is None else FemSettings(n_across=int(n))
+    return None if n is None else FemSettings(n_across=n)
+
+
+def grid_label(n_across) -> str:
+    """A grid's cells across the limb as said to the user: "9", or "14 x 7" for a pair (x, z)."""
+    return str(n_across) if np.ndim(n_across) == 0 else " x ".join(str(int(v)) for v in n_across)
 
 
 def _read_pose(path) -> np.ndarray:
@@ -238,7 +243,9 @@ def run(args) -> int:
                 "steps": recon.steps, "converged": recon.converged,
                 "flying_pixels_left_out": len(flying)},
         "initial_pose_off": initial_off,
-        "model": {"grid_cells": len(model.grid.cells), "cells_across": model.settings.n_across},
+        "model": {"grid_cells": len(model.grid.cells), "cells_across": (
+            int(model.settings.n_across) if np.ndim(model.settings.n_across) == 0
+            else [int(v) for v in model.settings.n_across])},
         "seconds": {"model": built, "registration_and_method": seconds},
         "warnings": notes,
     }
