@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
+from knee.app.commands.fem_subject import grid_label, model_settings
 from knee.app.console import ProgressBar, flexion_list, out_dir, say
 from knee.app.experiments.case_set import TRUTH_EDGE_WIDTHS, is_case_set, read_case_set, run_case_set
 from knee.app.experiments.cases import compare_cases, prior_floor, truth_phantom
 from knee.app.experiments.skin_floor import skin_floor
-from knee.app.commands.fem_subject import grid_label, model_settings
 from knee.app.experiments.subject_cases import compare_subject
 from knee.app.reports import case_set as report
 from knee.app.reports.compare import (
