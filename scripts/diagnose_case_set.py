@@ -15,7 +15,7 @@ tibia's own at the end, and of the misses how many the femur's tilt leads (large
 that axis the flexion's error is about the femur's tilt less the tibia's: which bone's placement to look at.
 
     .venv/bin/python scripts/diagnose_case_set.py CASE_SET [--only ID,...] [--method links|init]
-        [--csv OUT.csv] [--plot OUT.png]
+        [--cells-across N|NX,NZ] [--csv OUT.csv] [--plot OUT.png]
     .venv/bin/python scripts/diagnose_case_set.py --from-csv A.csv [B.csv ...] [--plot OUT.png]
 
 The CSV has a row per case and stage. About 5 s per case on the 2-core machine (60 cases: 5 min).
@@ -139,10 +139,14 @@ def flexion_table(records, min_seen: int) -> list[str]:
 
 
 def main() -> int:
+    from knee.app.cli import CELLS_ACROSS_HELP, cells_across
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("cases", nargs="?", help="a case set folder (scripts/build_case_set.py)")
     ap.add_argument("--only", default="", help="comma-separated parts of case ids to run")
     ap.add_argument("--method", default="links", choices=("links", "init"))
+    ap.add_argument("--cells-across", type=cells_across, default=None, metavar="N|NX,NZ",
+                    help=f"the model's grid, as knee compare takes it: {CELLS_ACROSS_HELP}")
     ap.add_argument("--csv", default=None, help="write a row per case and stage here")
     ap.add_argument("--from-csv", nargs="+", default=None, metavar="CSV",
                     help="print the tables from CSVs this script wrote (pooled), running nothing")
@@ -159,6 +163,9 @@ def main() -> int:
     if (args.cases is None) == (args.from_csv is None):
         print("error: give a case set or --from-csv, not both" if args.cases else
               "error: give a case set folder to run, or --from-csv with the tables of earlier runs", file=sys.stderr)
+        return 2
+    if args.from_csv is not None and args.cells_across is not None:
+        print("error: --cells-across sets the grid of cases run; --from-csv runs none", file=sys.stderr)
         return 2
     if args.from_csv is not None:
         try:
@@ -186,7 +193,10 @@ def main() -> int:
     select = (lambda c: any(o in c["id"] for o in only)) if only else None
     progress = timed_progress()
 
-    runs = diagnose_case_set(args.cases, args.method, progress, select)
+    from knee.models.fem.scene import FemSettings
+
+    settings = None if args.cells_across is None else FemSettings(n_across=args.cells_across)
+    runs = diagnose_case_set(args.cases, args.method, progress, select, settings=settings)
     if not runs:
         print(f"error: no case of {args.cases} matches --only {args.only}", file=sys.stderr)
         return 2

@@ -380,7 +380,8 @@ def test_diagnosis_tables_pool_csvs_and_split_the_flexion_by_view(tmp_path, caps
                        (["--from-csv", binary], "cannot read it as a CSV"),
                        (["--from-csv", a, short], "has a value that is not a number"),
                        (["--from-csv", tmp_path / "none.csv"], "is not a file"),
-                       ([tmp_path, "--from-csv", a], "not both"), ([], "or --from-csv")]:
+                       ([tmp_path, "--from-csv", a], "not both"), ([], "or --from-csv"),
+                       (["--from-csv", a, "--cells-across", "9"], "--from-csv runs none")]:
         assert run_script("diagnose_case_set", argv) == 2
         _one_line_error(capsys, says)
 
@@ -716,6 +717,13 @@ def test_compare_on_a_case_set_with_a_finer_grid(small_case_set, tmp_path, monke
     assert "the model's grid 9 cells across" in (out / "compare.md").read_text()
     (row,) = list(csv.DictReader((out / "compare.csv").open()))
     assert not row["failed"] and float(row["femur_footprints_mm"]) < 20.0
+    # the stage-wise diagnosis takes the same grid (scripts/diagnose_case_set.py --cells-across)
+    from knee.app.experiments.case_set import diagnose_case_set
+    from knee.models.fem.scene import FemSettings
+
+    [(row, stages)] = diagnose_case_set(small_case_set, "links", select=lambda c: "0mm-paper" in c["id"],
+                                        settings=FemSettings(n_across=(9, 5)))
+    assert planes[-1] == (10, 6) and not row.failed and stages[-1].stage == "final"
 
 
 def _rrd_print(path) -> str:

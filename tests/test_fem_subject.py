@@ -87,27 +87,33 @@ def test_the_bones_of_a_subject_in_the_cameras_frame(case):
     assert set(r["tf_joint_coordinates"]) == {"flexion", "adduction", "internal_rotation", "anterior", "proximal",
                                               "lateral"}
     assert r["model"]["cells_across"] == 7  # the model's default grid, said in the result
-    case["default_grid_cells"] = r["model"]["grid_cells"]
 
 
 def test_a_finer_grid_on_request(case):
     """``--cells-across 12`` builds the model with 12 cells across the limb instead of 7 (more cells, said in
     the result) and reads the same knee: the flexion within 2 deg of the truth and the femur within the default
     run's bounds. ``12,7`` refines x only (fewer cells than 12 each way, more than 7)."""
+    import knee
+    from knee.fitting.subject import load_subject
+    from knee.fitting.subject_anatomy import subject_anatomy
+    from knee.models.fem.scene import build_knee_model
+
+    prior = knee.Mechanism(knee.load_model(case["tmp"] / "prior.toml"))
+    default_cells = len(build_knee_model(subject_anatomy(load_subject(case["dir"]), prior.params), prior=prior).grid.cells)
     out = case["tmp"] / "fine"
     p = run("fem", case["dir"], "--prior", case["tmp"] / "prior.toml", "--cloud", case["tmp"] / "cloud.ply",
             "--initial-pose", case["tmp"] / "pose.txt", "--cells-across", "12", "--out", out, "--quiet")
     assert p.returncode == 0, p.stderr
     r = json.loads((out / "result.json").read_text())
     assert r["model"]["cells_across"] == 12
-    assert r["model"]["grid_cells"] > 2 * case.get("default_grid_cells", 0)
+    assert r["model"]["grid_cells"] > 2 * default_cells
     p = run("fem", case["dir"], "--prior", case["tmp"] / "prior.toml", "--cloud", case["tmp"] / "cloud.ply",
             "--initial-pose", case["tmp"] / "pose.txt", "--cells-across", "12,7", "--out", case["tmp"] / "x-only",
             "--quiet")
     assert p.returncode == 0, p.stderr
     rx = json.loads((case["tmp"] / "x-only" / "result.json").read_text())
     assert rx["model"]["cells_across"] == [12, 7]
-    assert case.get("default_grid_cells", 0) < rx["model"]["grid_cells"] < r["model"]["grid_cells"]
+    assert default_cells < rx["model"]["grid_cells"] < r["model"]["grid_cells"]
     assert abs(rx["flexion_deg"] - math.degrees(case["tf"][0])) < 2.0
     assert abs(r["flexion_deg"] - math.degrees(case["tf"][0])) < 2.0
     err = np.linalg.inv(case["T_cam_ct"]) @ np.array(r["T_camera_femur_ct"])
