@@ -15,7 +15,7 @@ tibia's own at the end, and of the misses how many the femur's tilt leads (large
 that axis the flexion's error is about the femur's tilt less the tibia's: which bone's placement to look at.
 
     .venv/bin/python scripts/diagnose_case_set.py CASE_SET [--only ID,...] [--method links|init]
-        [--cells-across N|NX,NZ] [--csv OUT.csv] [--plot OUT.png]
+        [--cells-across N|NX,NZ|knee] [--csv OUT.csv] [--plot OUT.png]
     .venv/bin/python scripts/diagnose_case_set.py --from-csv A.csv [B.csv ...] [--plot OUT.png]
 
 The CSV has a row per case and stage. About 5 s per case on the 2-core machine (60 cases: 5 min).
@@ -145,7 +145,7 @@ def main() -> int:
     ap.add_argument("cases", nargs="?", help="a case set folder (scripts/build_case_set.py)")
     ap.add_argument("--only", default="", help="comma-separated parts of case ids to run")
     ap.add_argument("--method", default="links", choices=("links", "init"))
-    ap.add_argument("--cells-across", type=cells_across, default=None, metavar="N|NX,NZ",
+    ap.add_argument("--cells-across", type=cells_across, default=None, metavar="N|NX,NZ|knee",
                     help=f"the model's grid, as knee compare takes it: {CELLS_ACROSS_HELP}")
     ap.add_argument("--csv", default=None, help="write a row per case and stage here")
     ap.add_argument("--from-csv", nargs="+", default=None, metavar="CSV",

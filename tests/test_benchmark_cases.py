@@ -709,12 +709,18 @@ def test_compare_on_a_case_set_with_a_finer_grid(small_case_set, tmp_path, monke
     with pytest.raises(SystemExit) as e:  # refused by the parser, in one line
         main(["compare", str(small_case_set), "--cells-across", "2", "--out", str(tmp_path / "no")])
     assert e.value.code == 2 and "--cells-across: must be from 3 to 24, got 2" in capsys.readouterr().err
-    for bad, says in (("9,2", "must be from 3 to 24, got 2"), ("9,9,9", "must be N or NX,NZ, got '9,9,9'")):
+    for bad, says in (("9,2", "must be from 3 to 24, got 2"), ("9,9,9", "must be N, NX,NZ or knee, got '9,9,9'"),
+                      ("limb", "must be an integer, got 'limb'")):
         with pytest.raises(SystemExit):
             main(["compare", str(small_case_set), "--cells-across", bad, "--out", str(tmp_path / "no")])
         assert says in capsys.readouterr().err
     assert not (tmp_path / "no").exists()
     assert "the model's grid 9 cells across" in (out / "compare.md").read_text()
+    # sized by the knee: 7 cells along z, at least 7 along x, said in the title
+    assert main(["compare", str(small_case_set), "--methods", "kinematics", "--only", "1mm-paper", "--cells-across",
+                 "knee", "--out", str(tmp_path / "knee"), "--quiet"]) == 0
+    assert planes[-1][1] == 8 and planes[-1][0] >= 8
+    assert "the model's grid sized by the knee" in (tmp_path / "knee" / "compare.md").read_text()
     (row,) = list(csv.DictReader((out / "compare.csv").open()))
     assert not row["failed"] and float(row["femur_footprints_mm"]) < 20.0
     # the stage-wise diagnosis takes the same grid (scripts/diagnose_case_set.py --cells-across)

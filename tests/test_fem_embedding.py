@@ -129,6 +129,30 @@ def test_fem_settings_reach_the_grid_and_the_tissue_cells(volunteer):
         build_knee_model(anatomy, FemSettings(soft_element="serendipity"), prior=volunteer, phantom=ph)
 
 
+def test_grid_sized_by_the_knee(volunteer):
+    """``n_across="knee"``: cells along x of about a sixth of the femur's width over the grid's box (the skin's
+    widened by the grid's margin each side), at least the paper's 7, and 7 along z; the model built with it
+    carries the pair it used and its grid has those cells. Catches the axes swapped, the floor of 7 or the
+    grid's margin left out, and an unknown word taken silently."""
+    from knee.foundations.errors import KneeInputError
+    from knee.models.fem.scene import FemSettings, build_knee_model, knee_sized_across, phantom_anatomy
+
+    # a box 216 mm across x (218 with the margins) and a 90 mm femur: cells of 15 mm, 218 / 15 = 14.5 -> 15
+    # (216 / 15 = 14.4 would give 14); a narrow box keeps the paper's 7
+    assert knee_sized_across([[0.0, 0.0, 0.0], [216.0, 400.0, 300.0]], 90.0) == (15, 7)
+    assert knee_sized_across([[0.0, 0.0, 0.0], [60.0, 400.0, 300.0]], 90.0) == (7, 7)
+    with pytest.raises(KneeInputError, match="width"):
+        knee_sized_across([[0.0, 0.0, 0.0], [216.0, 400.0, 300.0]], 0.0)
+    anatomy, ph = phantom_anatomy(volunteer)
+    m = build_knee_model(anatomy, FemSettings(n_across="knee"), prior=volunteer, phantom=ph)
+    ext = np.ptp(np.asarray(anatomy.skin.vertices)[:, 0]) + 2.0
+    nx = max(7, int(round(ext / (anatomy.width / 6.0))))
+    assert m.settings.n_across == (nx, 7)
+    assert (len(m.grid.axes[0]) - 1, len(m.grid.axes[2]) - 1) == (nx, 7)
+    with pytest.raises(KneeInputError, match="knee"):
+        build_knee_model(anatomy, FemSettings(n_across="limb"), prior=volunteer, phantom=ph)
+
+
 def test_tetrahedralize_a_sphere():
     s = trimesh.creation.icosphere(4, 60.0)
     X, T = tetrahedralize(s, 20.0)

@@ -22,6 +22,8 @@ from knee.foundations.errors import KneeInputError
 from knee.foundations.surfaces import SurfaceQuery, closed_surface
 
 INSIDE, BOUNDARY = 0, 1  # a cell's status (cells outside the skin are dropped)
+#: mm: how far the grid's box reaches beyond the skin's on every side (:func:`build_grid`'s ``margin``).
+GRID_MARGIN_MM = 1.0
 
 
 @dataclass
@@ -108,7 +110,7 @@ def across_counts(n_across) -> tuple[int, int]:
 
 
 def build_grid(skin, n_across: int | tuple[int, int] = 7, element_size: float | None = 12.0,
-               n_along: int | None = None, margin: float = 1.0, joint_y: float | None = None,
+               n_along: int | None = None, margin: float = GRID_MARGIN_MM, joint_y: float | None = None,
                joint_size: float = 3.0, joint_half_width: float = 15.0, growth: float = 1.3,
                offset: float = 0.0) -> SparseGrid:
     """Build the sparse grid around a closed skin mesh (trimesh), see the module docstring. ``n_across``: the

@@ -13,11 +13,11 @@
     knee osteotomy MODEL --bone tibia|femur --angle 8 [--plane px,py,pz,nx,ny,nz] [--hinge hx,hy,hz,ax,ay,az]
                    [--release mcl] [--trial CSV] [--mass 72] [--height 1.75] [--out DIR] [--force]
     knee compare MODEL [--truth MODEL] [--flexion 30:120:15] [--cameras oblique,frontal,lateral] [--out DIR]
-    knee compare CASE_SET [--methods links,kinematics,init,paper] [--only ID,...] [--cells-across 7] [--out DIR]
+    knee compare CASE_SET [--methods links,kinematics,init,paper] [--only ID,...] [--cells-across 7|NX,NZ|knee] [--out DIR]
     knee fem MODEL [--flexion 90] [--truth MODEL] [--camera oblique|frontal|lateral|AZ,EL,DIST] [--rrd FILE]
              [--cloud FILE | --depth FILE --intrinsics fx,fy,cx,cy [--depth-scale 1]] [--keep-flying] [--pose FILE]
     knee fem SUBJECT_DIR --prior FITTED.toml (--depth FILE --intrinsics fx,fy,cx,cy | --cloud FILE)
-             [--initial-pose FILE] [--method links|init|kinematics|paper] [--cells-across 7] --out DIR
+             [--initial-pose FILE] [--method links|init|kinematics|paper] [--cells-across 7|NX,NZ|knee] --out DIR
 
 Angles in degrees, lengths in mm. Exit codes: 0 success; 2 bad input or an output that cannot be written
 (one line ``knee: error: ...``); 3 a numerical failure on good input (the mechanism does not assemble, a
@@ -51,17 +51,21 @@ COMMANDS = {"models": "models", "sweep": "sweep", "demo": "demo", "synth-subject
 #: The finest grid ``--cells-across`` takes (cells across the limb; the matrix grows with their square).
 MAX_CELLS_ACROSS = 24
 CELLS_ACROSS_HELP = ("cells across the limb of the association model's grid: N each way, or NX,NZ (x anteroposterior, "
-                     "z medio-lateral; 7). 14 halves the cells: on a real leg the femur no longer sits where the cells "
-                     "happen to fall, at about twice the time; 14,7 refines the anteroposterior axis only, with most "
-                     "of that gain at a third more time (README, 'The model's grid')")
+                     "z medio-lateral; 7), or 'knee': x cells of about a sixth of the femur's width, 7 across z. "
+                     "14 halves the cells: on a real leg the femur no longer sits where the cells happen to fall, "
+                     "at about twice the time; 14,7 refines the anteroposterior axis only, with most of that gain at "
+                     "a third more time (README, 'The model's grid')")
 
 
 def cells_across(text: str):
-    """``--cells-across``: N (cells each way across the limb) or NX,NZ, each from 3 to :data:`MAX_CELLS_ACROSS`
-    (argparse type): an int or a pair."""
+    """``--cells-across``: N (cells each way across the limb) or NX,NZ, each from 3 to :data:`MAX_CELLS_ACROSS`,
+    or ``knee`` (sized by the knee: :func:`knee.models.fem.scene.knee_sized_across`) (argparse type): an int, a
+    pair or "knee"."""
+    if str(text).strip().lower() == "knee":
+        return "knee"
     parts = str(text).split(",")
     if len(parts) > 2:
-        raise argparse.ArgumentTypeError(f"must be N or NX,NZ, got {text!r}")
+        raise argparse.ArgumentTypeError(f"must be N, NX,NZ or knee, got {text!r}")
     counts = tuple(at_least(3, int, MAX_CELLS_ACROSS)(p.strip()) for p in parts)
     return counts[0] if len(counts) == 1 else counts
 
@@ -173,7 +177,7 @@ def build_parser() -> argparse.ArgumentParser:
     co.add_argument("--no-initial-pose", action="store_true",
                     help="case set: leave each case's rough pose out (the global search finds the knee)")
     co.add_argument("--frames", type=int, help="subject: how many rows of the motion, spread over it (4)")
-    co.add_argument("--cells-across", type=cells_across, metavar="N|NX,NZ",
+    co.add_argument("--cells-across", type=cells_across, metavar="N|NX,NZ|knee",
                     help=f"case set, subject: {CELLS_ACROSS_HELP}")
     co.add_argument("--truth", help="parameter set: the parameter set generating the truth (default: MODEL, with "
                                     "the prior = MODEL perturbed by --perturb)")
@@ -195,7 +199,7 @@ def build_parser() -> argparse.ArgumentParser:
     fe.add_argument("--prior", help="subject: the fitted parameter file (knee fit's fitted.toml), the kinematic prior")
     fe.add_argument("--method", choices=("links", "init", "kinematics", "paper"),
                     help="subject: (iii) links (default), (ii) init, (iv) kinematics, (i) paper")
-    fe.add_argument("--cells-across", type=cells_across, metavar="N|NX,NZ", help=CELLS_ACROSS_HELP)
+    fe.add_argument("--cells-across", type=cells_across, metavar="N|NX,NZ|knee", help=CELLS_ACROSS_HELP)
     fe.add_argument("--initial-pose", help="subject: text file with a rough 4x4 pose of the CT frame in the camera's "
                                            "frame (within about 30 deg and 50 mm); default: a global search")
     fe.add_argument("--out", help="subject: output folder (result.json, femur.stl, tibia.stl, fem.rrd, overlay.png)")

@@ -205,7 +205,7 @@ def run_cases(args) -> int:
     if args.no_initial_pose:
         truth += ", without the rough poses (the global search)"
     if args.cells_across is not None:
-        truth += f", the model's grid {grid_label(args.cells_across)} cells across"
+        truth += f", the model's grid {grid_label(args.cells_across)}"
     say(f"knee compare: case set {args.model} (seed {index.get('seed')}{truth}), {n} cases x {len(methods)} methods")
     bar = ProgressBar()
     title = f"Case set {Path(args.model).name} (seed {index.get('seed')}{truth})"

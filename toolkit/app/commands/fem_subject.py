@@ -71,8 +71,11 @@ def model_settings(args) -> FemSettings | None:
 
 
 def grid_label(n_across) -> str:
-    """A grid's cells across the limb as said to the user: "9", or "14 x 7" for a pair (x, z)."""
-    return str(n_across) if np.ndim(n_across) == 0 else " x ".join(str(int(v)) for v in n_across)
+    """A grid's cells across the limb as said to the user: "9 cells across", "14 x 7 cells across" for a pair
+    (x, z), or "sized by the knee" for ``"knee"``."""
+    if isinstance(n_across, str):
+        return "sized by the knee (cells along x about a sixth of the femur's width)"
+    return (str(n_across) if np.ndim(n_across) == 0 else " x ".join(str(int(v)) for v in n_across)) + " cells across"
 
 
 def _read_pose(path) -> np.ndarray:
