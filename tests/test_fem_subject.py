@@ -92,7 +92,8 @@ def test_the_bones_of_a_subject_in_the_cameras_frame(case):
 def test_a_finer_grid_on_request(case):
     """``--cells-across 12`` builds the model with 12 cells across the limb instead of 7 (more cells, said in
     the result) and reads the same knee: the flexion within 2 deg of the truth and the femur within the default
-    run's bounds. ``12,7`` refines x only (fewer cells than 12 each way, more than 7)."""
+    run's bounds. ``12,7`` refines x only (fewer cells than 12 each way, more than 7); ``knee`` sizes x by the
+    knee and says the pair it used."""
     import knee
     from knee.fitting.subject import load_subject
     from knee.fitting.subject_anatomy import subject_anatomy
@@ -114,6 +115,14 @@ def test_a_finer_grid_on_request(case):
     rx = json.loads((case["tmp"] / "x-only" / "result.json").read_text())
     assert rx["model"]["cells_across"] == [12, 7]
     assert default_cells < rx["model"]["grid_cells"] < r["model"]["grid_cells"]
+    # sized by the knee: the counts it used said in the result, 7 along z and at least 7 along x
+    p = run("fem", case["dir"], "--prior", case["tmp"] / "prior.toml", "--cloud", case["tmp"] / "cloud.ply",
+            "--initial-pose", case["tmp"] / "pose.txt", "--cells-across", "knee", "--out", case["tmp"] / "by-knee",
+            "--quiet")
+    assert p.returncode == 0, p.stderr
+    rk = json.loads((case["tmp"] / "by-knee" / "result.json").read_text())
+    assert rk["model"]["cells_across"][1] == 7 and rk["model"]["cells_across"][0] >= 7
+    assert abs(rk["flexion_deg"] - math.degrees(case["tf"][0])) < 2.0
     assert abs(rx["flexion_deg"] - math.degrees(case["tf"][0])) < 2.0
     assert abs(r["flexion_deg"] - math.degrees(case["tf"][0])) < 2.0
     err = np.linalg.inv(case["T_cam_ct"]) @ np.array(r["T_camera_femur_ct"])
