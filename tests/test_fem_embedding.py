@@ -132,8 +132,8 @@ def test_fem_settings_reach_the_grid_and_the_tissue_cells(volunteer):
 def test_grid_sized_by_the_knee(volunteer):
     """``n_across="knee"``: cells along x of about a sixth of the femur's width over the grid's box (the skin's
     widened by the grid's margin each side), at least the paper's 7, and 7 along z; the model built with it
-    carries the pair it used and its grid has those cells. Catches the axes swapped, the floor of 7 or the
-    grid's margin left out, and an unknown word taken silently."""
+    carries the pair it used and its grid has those cells. Catches the axes swapped, the floor of 7, the cap
+    of 24 or the grid's margin left out, and an unknown word taken silently."""
     from knee.foundations.errors import KneeInputError
     from knee.models.fem.scene import FemSettings, build_knee_model, knee_sized_across, phantom_anatomy
 
@@ -141,6 +141,7 @@ def test_grid_sized_by_the_knee(volunteer):
     # (216 / 15 = 14.4 would give 14); a narrow box keeps the paper's 7
     assert knee_sized_across([[0.0, 0.0, 0.0], [216.0, 400.0, 300.0]], 90.0) == (15, 7)
     assert knee_sized_across([[0.0, 0.0, 0.0], [60.0, 400.0, 300.0]], 90.0) == (7, 7)
+    assert knee_sized_across([[0.0, 0.0, 0.0], [900.0, 400.0, 300.0]], 90.0) == (24, 7)  # capped, not 60
     with pytest.raises(KneeInputError, match="width"):
         knee_sized_across([[0.0, 0.0, 0.0], [216.0, 400.0, 300.0]], 0.0)
     anatomy, ph = phantom_anatomy(volunteer)

@@ -45,6 +45,9 @@ from knee.models.phantom import Phantom, build_phantom
 KNEE_CELL_WIDTHS = 1.0 / 6.0
 #: The paper's cells across the limb, each way (seed 000's 7 x 7 grid): the model's default.
 PAPER_CELLS_ACROSS = 7
+#: The most cells along x a grid sized by the knee takes (:func:`knee_sized_across`): a skin box four femoral
+#: widths deep; a leg's is about two and a half.
+KNEE_SIZED_MOST = 24
 
 SOFT_DENSITY = 1.0e-9   # tonne/mm^3 (1000 kg/m^3)
 BONE_DENSITY = 1.9e-9   # tonne/mm^3
@@ -283,11 +286,12 @@ def phantom_anatomy(mech: Mechanism, settings: FemSettings | None = None) -> tup
 
 
 def knee_sized_across(skin_bounds, width: float, cell_widths: float = KNEE_CELL_WIDTHS,
-                      least: int = PAPER_CELLS_ACROSS) -> tuple[int, int]:
+                      least: int = PAPER_CELLS_ACROSS, most: int = KNEE_SIZED_MOST) -> tuple[int, int]:
     """The grid's cells across the limb (x, z) sized by the knee: along the anteroposterior axis x, as many as
-    make cells of about ``cell_widths`` of the femur's distal ``width`` (mm) over the skin's extent
-    grid's box (``skin_bounds``, (2, 3), mm, the femur frame, with the grid's margin on each side), and at least
-    ``least``; across it, z, ``least``.
+    make cells of about ``cell_widths`` of the femur's distal ``width`` (mm) over the grid's box (the skin's,
+    ``skin_bounds``, (2, 3), mm, the femur frame, widened by the grid's margin on each side), at least
+    ``least`` and at most ``most`` (a skin box many femoral widths deep would otherwise ask for a grid whose
+    matrix grows with the square of the count); across it, z, ``least``.
 
     Why x alone: what a coarse grid gets wrong on a real leg is the femur's place along x (the posed knee's
     front too thick by a fraction of a cell), and cells of about a sixth of the femoral width along x remove
@@ -301,6 +305,7 @@ def knee_sized_across(skin_bounds, width: float, cell_widths: float = KNEE_CELL_
     if not width > 0:
         raise KneeInputError(f"the femur's width must be positive to size the grid by the knee, got {width}")
     nx = max(int(least), int(round((hi[0] - lo[0] + 2.0 * GRID_MARGIN_MM) / (cell_widths * width))))
+    nx = min(nx, max(int(most), int(least)))
     return nx, int(least)
 
 
