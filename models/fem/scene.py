@@ -298,7 +298,7 @@ def knee_sized_across(skin_bounds, width: float, cell_widths: float = KNEE_CELL_
     most of it (BENCHMARKS.md, "A finer grid on request"). The paper's count is per skin box: a whole leg's
     skin spans twice or more its femoral width across x, and 7 cells there are a third of the femur wide.
     Measured at 0-1 mm skin mismatch, against 7 x 7, per case: the Visible Human (14 x 7) 0.23 mm better on
-    five seeds and 0.15 held out, lenhart2015 (15 x 7) 0.25, the phantom (9 x 7) 0.11 worse against its
+    five seeds and 0.15 held out, lenhart2015 (15 x 7) 0.25, the phantom (9 x 7) 0.08-0.11 worse against its
     unconverged truth; at 2 mm 0.01-0.29 mm worse; the median over both anatomies' five seeds unmoved, so it is
     an option, not the default."""
     lo, hi = np.asarray(skin_bounds, float)
