@@ -710,7 +710,7 @@ def test_compare_on_a_case_set_with_a_finer_grid(small_case_set, tmp_path, monke
         main(["compare", str(small_case_set), "--cells-across", "2", "--out", str(tmp_path / "no")])
     assert e.value.code == 2 and "--cells-across: must be from 3 to 24, got 2" in capsys.readouterr().err
     for bad, says in (("9,2", "must be from 3 to 24, got 2"), ("9,9,9", "must be N, NX,NZ or knee, got '9,9,9'"),
-                      ("limb", "must be an integer, got 'limb'")):
+                      ("limb", "must be N, NX,NZ or knee, got 'limb'"), ("9,x", "must be N, NX,NZ or knee, got '9,x'")):
         with pytest.raises(SystemExit):
             main(["compare", str(small_case_set), "--cells-across", bad, "--out", str(tmp_path / "no")])
         assert says in capsys.readouterr().err

@@ -24,6 +24,8 @@ from knee.foundations.surfaces import SurfaceQuery, closed_surface
 INSIDE, BOUNDARY = 0, 1  # a cell's status (cells outside the skin are dropped)
 #: mm: how far the grid's box reaches beyond the skin's on every side (:func:`build_grid`'s ``margin``).
 GRID_MARGIN_MM = 1.0
+#: The paper's cells across the limb, each way (seed 000's 7 x 7 grid): the model's default.
+PAPER_CELLS_ACROSS = 7
 
 
 @dataclass
@@ -109,9 +111,9 @@ def across_counts(n_across) -> tuple[int, int]:
     return int(counts[0]), int(counts[1])
 
 
-def build_grid(skin, n_across: int | tuple[int, int] = 7, element_size: float | None = 12.0,
-               n_along: int | None = None, margin: float = GRID_MARGIN_MM, joint_y: float | None = None,
-               joint_size: float = 3.0, joint_half_width: float = 15.0, growth: float = 1.3,
+def build_grid(skin, n_across: int | tuple[int, int] = PAPER_CELLS_ACROSS,
+               element_size: float | None = 12.0, n_along: int | None = None, margin: float = GRID_MARGIN_MM,
+               joint_y: float | None = None, joint_size: float = 3.0, joint_half_width: float = 15.0, growth: float = 1.3,
                offset: float = 0.0) -> SparseGrid:
     """Build the sparse grid around a closed skin mesh (trimesh), see the module docstring. ``n_across``: the
     cells across x and z, one count for both or a pair (x, z). ``offset`` (a fraction of a cell, in [0, 1)): the

@@ -33,7 +33,7 @@ from knee.models.fem.fields import (
     MappedPenaltyContact,
     MappedSprings,
 )
-from knee.models.fem.grid import GRID_MARGIN_MM, build_grid
+from knee.models.fem.grid import GRID_MARGIN_MM, PAPER_CELLS_ACROSS, build_grid
 from knee.models.fem.integrator import ImplicitEuler
 from knee.models.fem.mapping import TrilinearMapping
 from knee.models.mechanism.solver import Mechanism
@@ -43,8 +43,6 @@ from knee.models.phantom import Phantom, build_phantom
 #: the femur's distal width, and the paper's :data:`PAPER_CELLS_ACROSS` across it (z) and at least that along x
 #: (:func:`knee_sized_across`).
 KNEE_CELL_WIDTHS = 1.0 / 6.0
-#: The paper's cells across the limb, each way (seed 000's 7 x 7 grid): the model's default.
-PAPER_CELLS_ACROSS = 7
 #: The most cells along x a grid sized by the knee takes (:func:`knee_sized_across`): a skin box four femoral
 #: widths deep; a leg's is about two and a half.
 KNEE_SIZED_MOST = 24
@@ -62,9 +60,9 @@ class FemSettings:
     bones; ``cartilage`` set-back of the articular surfaces; materials, collateral spring stiffness,
     contact penalty and reach, time step and Rayleigh damping; ``bone_tets`` the target element count;
     ``n_across="knee"`` sizes x by the knee (:func:`knee_sized_across`; the model's settings then carry the
-    pair it used); ``grid_offset`` another placement of the same grid
-    (:func:`knee.models.fem.grid.build_grid`'s ``offset``); ``soft_element`` the tissue cells' stiffness (:data:`knee.models.fem.elements.HEX_ELEMENTS`:
-    the paper's ``"trilinear"``, or ``"incompatible"``, which bends without spurious shear). Both measured on
+    pair it used); ``grid_offset`` another placement of the same grid (:func:`knee.models.fem.grid.build_grid`'s
+    ``offset``); ``soft_element`` the tissue cells' stiffness (:data:`knee.models.fem.elements.HEX_ELEMENTS`: the
+    paper's ``"trilinear"``, or ``"incompatible"``, which bends without spurious shear). Both measured on
     the honest benchmark and left at the paper's (BENCHMARKS.md)."""
 
     n_across: int | tuple | str = PAPER_CELLS_ACROSS

@@ -48,7 +48,9 @@ from knee.foundations.errors import (
 COMMANDS = {"models": "models", "sweep": "sweep", "demo": "demo", "synth-subject": "synth_subject", "fit": "fit",
             "gait": "gait", "contact": "contact", "osteotomy": "osteotomy", "compare": "compare", "fem": "fem"}
 
-#: The finest grid ``--cells-across`` takes (cells across the limb; the matrix grows with their square).
+#: The finest grid ``--cells-across`` takes (cells across the limb; the matrix grows with their square); the
+#: same bound as a grid sized by the knee keeps to (:data:`knee.models.fem.scene.KNEE_SIZED_MOST`, not imported
+#: here so that the parser stays light).
 MAX_CELLS_ACROSS = 24
 CELLS_ACROSS_HELP = ("cells across the limb of the association model's grid: N each way, or NX,NZ (x anteroposterior, "
                      "z medio-lateral; 7), or 'knee': x cells of about a sixth of the femur's width, 7 across z. "
@@ -64,7 +66,7 @@ def cells_across(text: str):
     if str(text).strip().lower() == "knee":
         return "knee"
     parts = str(text).split(",")
-    if len(parts) > 2:
+    if len(parts) > 2 or not all(p.strip().lstrip("+-").isdigit() for p in parts):
         raise argparse.ArgumentTypeError(f"must be N, NX,NZ or knee, got {text!r}")
     counts = tuple(at_least(3, int, MAX_CELLS_ACROSS)(p.strip()) for p in parts)
     return counts[0] if len(counts) == 1 else counts
