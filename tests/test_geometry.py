@@ -105,3 +105,35 @@ def test_decimation_keeps_a_closed_volume_or_says_it_cannot():
     for faces in (1, 2):
         with pytest.raises(KneeInputError, match=r"^the skin could not be coarsened into a closed surface"):
             decimated(sphere, faces, "skin")
+
+
+def _min_angles(mesh):
+    t = mesh.triangles
+    e = [t[:, (i + 1) % 3] - t[:, i] for i in range(3)]
+    cos = [np.einsum("ij,ij->i", -e[i - 1], e[i]) / (np.linalg.norm(e[i - 1], axis=1) * np.linalg.norm(e[i], axis=1))
+           for i in range(3)]
+    return np.degrees(np.arccos(np.clip(np.max(cos, axis=0), -1.0, 1.0)))
+
+
+def test_bisection_to_length_keeps_the_surface_closed_and_its_faces_shaped():
+    """A capsule's sides given as long thin faces (a cylinder of 12 sections, 300 mm long: faces 300 mm by 26 mm)
+    bisected to 15 mm edges: no edge longer, the same closed surface (every vertex kept, every new one on an old
+    edge's midpoint, the volume exact, the Euler characteristic of a sphere, the winding consistent), and no
+    angle below half the smallest the mesh had (longest-edge bisection's bound; splitting every edge in four,
+    or bisecting any other edge than the longest, makes needles of these faces). An edge already short enough
+    is left as it was."""
+    import trimesh
+
+    from knee.foundations.surfaces import SurfaceQuery, bisected_to_length
+
+    tube = trimesh.creation.cylinder(radius=50.0, height=300.0, sections=12)
+    out = bisected_to_length(tube, 15.0)
+    assert out.edges_unique_length.max() <= 15.0
+    assert len(out.vertices) > 10 * len(tube.vertices)
+    np.testing.assert_array_equal(out.vertices[: len(tube.vertices)], tube.vertices)
+    assert out.is_watertight and out.is_winding_consistent and out.euler_number == 2
+    assert out.volume == pytest.approx(tube.volume, rel=1e-12)
+    assert np.abs(SurfaceQuery.of(tube).signed_distance(out.vertices)).max() < 1e-3  # single precision
+    assert _min_angles(out).min() >= 0.5 * _min_angles(tube).min() - 1e-9
+    same = bisected_to_length(tube, 1000.0)
+    np.testing.assert_array_equal(same.faces, tube.faces)

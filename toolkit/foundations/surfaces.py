@@ -198,6 +198,50 @@ def decimated(mesh: trimesh.Trimesh, faces: int, what: str = "surface") -> trime
     return out
 
 
+def bisected_to_length(mesh: trimesh.Trimesh, max_edge: float, max_rounds: int = 64) -> trimesh.Trimesh:
+    """The mesh with its long edges bisected until none is longer than ``max_edge`` (mm): in each round every
+    face whose longest edge is too long has that edge split at its midpoint, and so does every face that shares a
+    split edge (longest-edge bisection: each face split along its longest edge first, so a long thin face becomes
+    faces about as long as they are wide, and the mesh stays conforming and closed). The surface is unchanged;
+    only its vertices are more (a skin of a few long faces, as a capsule's sides are, gets vertices wherever a
+    model that moves them needs them). Vectorised over the faces."""
+    v = np.asarray(mesh.vertices, float).copy()
+    f = np.asarray(mesh.faces, np.int64).copy()
+    for _ in range(max_rounds):
+        ends = np.stack([f, np.roll(f, -1, axis=1)], axis=2)  # (F, 3, 2): edge i runs from node i to node i + 1
+        length = np.linalg.norm(v[ends[:, :, 0]] - v[ends[:, :, 1]], axis=2)
+        if not len(f) or length.max() <= max_edge:
+            break
+        longest = length.argmax(axis=1)
+        edges, inv = np.unique(np.sort(ends, axis=2).reshape(-1, 2), axis=0, return_inverse=True)
+        inv = inv.reshape(-1, 3)
+        rows = np.arange(len(f))
+        marked = np.zeros(len(edges), bool)
+        marked[inv[rows, longest][length[rows, longest] > max_edge]] = True
+        while True:  # a face with any edge split has its longest edge split too (keeps the faces well shaped)
+            has = marked[inv].any(axis=1)
+            need = inv[rows[has], longest[has]]
+            if marked[need].all():
+                break
+            marked[need] = True
+        mid = np.full(len(edges), -1, np.int64)
+        split_edges = np.nonzero(marked)[0]
+        mid[split_edges] = len(v) + np.arange(len(split_edges))
+        v = np.vstack([v, 0.5 * (v[edges[split_edges, 0]] + v[edges[split_edges, 1]])])
+        order = (longest[:, None] + np.arange(3)[None, :]) % 3  # each face turned so its longest edge is edge 0
+        F = np.take_along_axis(f, order, axis=1)
+        M = mid[np.take_along_axis(inv, order, axis=1)]  # midpoints of edges (p q), (q r), (r p); -1 unsplit
+        cut = M[:, 0] >= 0
+        p, q, r = F[cut].T
+        m0, m1, m2 = M[cut].T
+        right_cut, left_cut = m1 >= 0, m2 >= 0
+        f = np.concatenate([
+            F[~cut],
+            np.stack([p, m0, r], 1)[~left_cut], np.stack([p, m0, m2], 1)[left_cut], np.stack([m2, m0, r], 1)[left_cut],
+            np.stack([m0, q, r], 1)[~right_cut], np.stack([m0, q, m1], 1)[right_cut], np.stack([m0, m1, r], 1)[right_cut]])
+    return trimesh.Trimesh(v, f, process=False)
+
+
 def clip_to_slab(mesh: trimesh.Trimesh, origin, axis, below: float, above: float) -> trimesh.Trimesh:
     """The part of a closed mesh between two planes normal to ``axis`` (3,), at ``origin - below * axis``
     and ``origin + above * axis`` (mm), closed by the planes' cross-sections (a boolean intersection with a

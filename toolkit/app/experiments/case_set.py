@@ -379,7 +379,7 @@ def build_case_set(out, seed: int = 0, data=None, anatomies=("phantom", "visible
             for mm in mismatches:
                 pose_id = f"{entry.name}-{family.split('+')[0]}-{fl:g}-{mm:g}mm"
                 verts = smooth_surface_field(skin.vertices, normals, mm, FIELD_WIDTHS * anatomy.width,
-                                             case_rng(seed, pose_id))
+                                             case_rng(seed, pose_id), faces=skin.faces)
                 cams = PLACEMENTS if mm == mismatches[len(mismatches) // 2] else {"paper": PLACEMENTS["paper"]}
                 for cname in cams:
                     cid = f"{pose_id}-{cname}"
