@@ -137,3 +137,6 @@ def test_bisection_to_length_keeps_the_surface_closed_and_its_faces_shaped():
     assert _min_angles(out).min() >= 0.5 * _min_angles(tube).min() - 1e-9
     same = bisected_to_length(tube, 1000.0)
     np.testing.assert_array_equal(same.faces, tube.faces)
+    for bad in (0.0, -5.0, float("nan"), "15"):  # each round would split every edge: refused in one line
+        with pytest.raises(KneeInputError, match=r"^the longest edge to bisect to must be a positive length"):
+            bisected_to_length(tube, bad)

@@ -32,7 +32,7 @@ from scipy.spatial import cKDTree
 
 from knee.foundations.geometry import principal_axes as _principal_axes, rigid_register
 from knee.foundations.pointclouds import NearCloud, voxel_downsample
-from knee.foundations.surfaces import SurfaceQuery
+from knee.foundations.surfaces import SurfaceQuery, vertex_areas
 from knee.models.fem.mapping import TrilinearMapping
 
 PAPER_BONE_FORCES = (9000.0, 23000.0, 3000.0, 6000.0)
@@ -108,11 +108,8 @@ SKIN_AREA_PER_SPRING_MM2 = 44.0
 
 
 def skin_point_areas(vertices, faces) -> np.ndarray:
-    """Each skin vertex's share of the skin's area (mm^2; a third of each face it is a corner of)."""
-    v = np.asarray(vertices, float)
-    f = np.asarray(faces, np.int64)
-    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
-    return np.bincount(f.ravel(), weights=np.repeat(area / 3.0, 3), minlength=len(v))
+    """Each skin vertex's share of the skin's area (mm^2; :func:`knee.foundations.surfaces.vertex_areas`)."""
+    return vertex_areas(vertices, faces)
 
 
 class SurfaceForces:

@@ -43,7 +43,7 @@ from scipy.spatial.transform import Rotation
 
 from knee.foundations.conventions import transform_points
 from knee.foundations.errors import KneeError, KneeInputError
-from knee.foundations.surfaces import SurfaceQuery, bisected_to_length, decimated
+from knee.foundations.surfaces import SurfaceQuery, bisected_to_length, decimated, face_areas, vertex_areas
 from knee.models.fem.bones import tet_quality
 from knee.models.fem.factor import SparseFactor
 
@@ -380,14 +380,14 @@ def smooth_surface_field(vertices, normals, rms_mm: float, correlation_mm: float
     else:
         f = np.asarray(faces, np.int64)
         tri = v[f]
-        area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        area = face_areas(v, f)
         pick = rng.choice(len(f), size=n_centres, p=area / area.sum())
         a, b = rng.random((2, n_centres))
         flip = a + b > 1.0  # a uniform point of each picked triangle
         a, b = np.where(flip, 1.0 - a, a), np.where(flip, 1.0 - b, b)
         t = tri[pick]
         centres = t[:, 0] + a[:, None] * (t[:, 1] - t[:, 0]) + b[:, None] * (t[:, 2] - t[:, 0])
-        weight = np.bincount(f.ravel(), weights=np.repeat(area / 3.0, 3), minlength=len(v))
+        weight = vertex_areas(v, f)
     amp = rng.normal(size=len(centres))
     tree = cKDTree(centres)
     field = np.zeros(len(v))

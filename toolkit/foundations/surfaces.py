@@ -198,13 +198,30 @@ def decimated(mesh: trimesh.Trimesh, faces: int, what: str = "surface") -> trime
     return out
 
 
+def face_areas(vertices, faces) -> np.ndarray:
+    """(F,) each triangle's area (mm^2)."""
+    v = np.asarray(vertices, float)
+    f = np.asarray(faces, np.int64)
+    return 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+
+
+def vertex_areas(vertices, faces) -> np.ndarray:
+    """(V,) each vertex's share of the surface's area (mm^2; a third of each face it is a corner of)."""
+    f = np.asarray(faces, np.int64)
+    return np.bincount(f.ravel(), weights=np.repeat(face_areas(vertices, f) / 3.0, 3), minlength=len(vertices))
+
+
 def bisected_to_length(mesh: trimesh.Trimesh, max_edge: float, max_rounds: int = 64) -> trimesh.Trimesh:
     """The mesh with its long edges bisected until none is longer than ``max_edge`` (mm): in each round every
     face whose longest edge is too long has that edge split at its midpoint, and so does every face that shares a
     split edge (longest-edge bisection: each face split along its longest edge first, so a long thin face becomes
     faces about as long as they are wide, and the mesh stays conforming and closed). The surface is unchanged;
     only its vertices are more (a skin of a few long faces, as a capsule's sides are, gets vertices wherever a
-    model that moves them needs them). Vectorised over the faces."""
+    model that moves them needs them). Vectorised over the faces. Each round halves the longest edges, so
+    ``max_rounds`` is never reached for a finite mesh. Raises :class:`KneeInputError` for a ``max_edge`` that is
+    not a positive length (every round would split every edge, four times the faces a round)."""
+    if not (isinstance(max_edge, (int, float, np.integer, np.floating)) and max_edge > 0):  # also refuses NaN
+        raise KneeInputError(f"the longest edge to bisect to must be a positive length (mm), got {max_edge!r}")
     v = np.asarray(mesh.vertices, float).copy()
     f = np.asarray(mesh.faces, np.int64).copy()
     for _ in range(max_rounds):
