@@ -8,6 +8,7 @@ same cases beside the floors.
 
     .venv/bin/python scripts/skin_mismatch_floor.py CASE_SET [--compare COMPARE.csv [--plot OUT.png]]
         [--csv OUT.csv] [--tissue [--tissue-mismatches 0,1,2] [--tissue-plot OUT.png]]
+        [--draws N [--draw-mismatch 1] [--draw-fields area,vertex] [--draws-csv OUT.csv]]
 
 With ``--tissue``, also the floors without skin mismatch that the model's own tissue sets: on each 0 mm case the
 association model posed with the true bones and the femur placed on its skin from the true pose, as methods
@@ -19,6 +20,13 @@ with every other step exact, no method built on it meets the flexion target. ``-
 tissue's floors at other skin mismatches as well (e.g. ``0,1,2``; the views other than the paper's are at 1 mm only),
 the floor then holding the random field too. ``--tissue-plot`` (with ``--compare``) draws (iii)'s flexion error per view
 against the tissue's floor's.
+
+With ``--draws N``, also the prior floor over N fresh draws of the field per view at ``--draw-mismatch`` mm (1 unless
+given), the truth's skin posed again at each 0 mm paper view (:func:`knee.app.experiments.skin_floor.redrawn_floor`):
+the set's one draw a view leaves its floor's median about as steady as a dozen draws. ``--draw-fields area,vertex``
+draws each field both ways, as the case sets draw it and as sets built before it was spread by area drew it, and
+compares them draw for draw. About 5-110 s a view to pose the truth again and 0.3 s a draw (a set of 12 paper views
+at 6 draws, both ways: about 15 min).
 
 About 0.2 s per case on the 2-core machine (the full set's 24: 6 s); the tissue's floors about 1 s per case (a set
 of 60 views at every mismatch: about a minute).
@@ -80,10 +88,18 @@ def main() -> int:
     ap.add_argument("--tissue-plot", default=None,
                     help="with --tissue and --compare: (iii)'s flexion error per view against the tissue floor's, "
                          "a PNG here")
+    ap.add_argument("--draws", type=int, default=None,
+                    help="also the prior floor over this many fresh draws of the skin mismatch field per 0 mm paper "
+                         "view, the truth's skin posed again (5-110 s a view)")
+    ap.add_argument("--draw-mismatch", type=float, default=1.0, help="with --draws: the field's RMS, mm (default 1)")
+    ap.add_argument("--draw-fields", default="area",
+                    help="with --draws: how the field is drawn, comma-separated: area (the case sets'), vertex (the "
+                         "sets' before the field was spread by area)")
+    ap.add_argument("--draws-csv", default=None, help="with --draws: write a row per draw here")
     args = ap.parse_args()
-    from knee.app.console import new_files, timed_progress
+    from knee.app.console import new_files, timed_progress, write_rows_csv
     from knee.app.experiments.case_set import read_case_set
-    from knee.app.experiments.skin_floor import skin_floor
+    from knee.app.experiments.skin_floor import check_redraw, skin_floor
     from knee.foundations.errors import KneeError, KneeInputError
 
     if (args.tissue_mismatches is not None or args.tissue_plot) and not args.tissue:
@@ -97,6 +113,9 @@ def main() -> int:
         print(f"error: --tissue-mismatches must be skin mismatches in mm, comma-separated, got "
               f"{args.tissue_mismatches!r}", file=sys.stderr)
         return 2
+    if (args.draws_csv or args.draw_fields != "area" or args.draw_mismatch != 1.0) and args.draws is None:
+        print("error: --draw-mismatch, --draw-fields and --draws-csv go with --draws (the redrawn floor)", file=sys.stderr)
+        return 2
     if args.plot and not args.compare:
         print("error: --plot needs --compare (the methods' errors to plot against the floors)", file=sys.stderr)
         return 2
@@ -105,7 +124,10 @@ def main() -> int:
               "floor)", file=sys.stderr)
         return 2
     try:
-        new_files(args.csv, args.plot, args.tissue_plot)
+        new_files(args.csv, args.plot, args.tissue_plot, args.draws_csv)
+        draw_fields = [f.strip() for f in args.draw_fields.split(",") if f.strip()]
+        if args.draws is not None:
+            draw_fields = check_redraw(args.draws, args.draw_mismatch, draw_fields)
         read_case_set(args.cases)
     except KneeError as e:
         print(f"error: {e}", file=sys.stderr)
@@ -159,6 +181,18 @@ def main() -> int:
             v = [compared[(r.case, m)] for r in g if (r.case, m) in compared]
             cells.append(f"{statistics.median(v):.2f}" if v else "-")
         print(f"| {mm:g} mm | {len(g)} | " + " | ".join(cells) + " |")
+    if args.draws is not None:
+        from knee.app.experiments.skin_floor import redrawn_floor, redrawn_floor_table
+
+        try:
+            drawn = redrawn_floor(args.cases, args.draws, args.draw_mismatch, draw_fields, progress)
+        except KneeError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        if args.draws_csv:
+            write_rows_csv(args.draws_csv, drawn)
+        print()
+        print("\n".join(redrawn_floor_table(drawn)))
     if args.tissue:
         from knee.app.experiments.skin_floor import flexion_floor_table, tissue_floor
 

@@ -1165,6 +1165,50 @@ def test_skin_floor_on_the_case_set_and_its_script(small_case_set, tmp_path, cap
     shutil.rmtree(tmp_path / "sub")
 
 
+def test_redrawn_floor_draws_each_field_afresh_and_reproducibly(small_case_set, tmp_path, capsys, run_script):
+    """The floor over fresh draws of the field: one row per view, draw and field kind, each kind of a draw against the
+    same 0 mm cloud (the table's per-draw difference is the rows' own), a larger field moves the match further, and
+    each draw's numbers are its own (the script's single area draw repeats the function's first); bad settings get one
+    line each, before any truth is posed, and nothing is written."""
+    from knee.app.experiments.skin_floor import check_redraw, redrawn_floor, redrawn_floor_table
+    from knee.foundations.errors import KneeInputError
+
+    rows = redrawn_floor(small_case_set, draws=2, mismatch_mm=1.0, fields=("area", "vertex"))
+    assert [(r.case, r.field, r.draw) for r in rows] == [("phantom-mechanism-40-0mm-paper", f, k)
+                                                          for k in (0, 1) for f in ("area", "vertex")]
+    assert all(0.05 < r.prior_mm < 8.0 and abs(r.prior_flexion_error_deg) < 5.0 for r in rows)
+    assert len({r.prior_mm for r in rows}) == 4  # every draw and kind a field of its own
+    by = {(r.field, r.draw): r.prior_mm for r in rows}
+    table = redrawn_floor_table(rows)
+    area_line, = [ln for ln in table if ln.startswith("| phantom | area | 2 | ")]
+    vertex_line, = [ln for ln in table if ln.startswith("| phantom | vertex | 2 | ")]
+    assert area_line.endswith("| - |")
+    diff = 0.5 * ((by["vertex", 0] - by["area", 0]) + (by["vertex", 1] - by["area", 1]))
+    assert f"| {diff:+.2f} (" in vertex_line
+    # a field four times as large moves the perfect skin's match further (the field is applied at its RMS)
+    large = redrawn_floor(small_case_set, draws=2, mismatch_mm=4.0, fields=("area",))
+    assert np.mean([r.prior_mm for r in large]) > 1.5 * np.mean([by["area", 0], by["area", 1]])
+    out_csv = tmp_path / "draws.csv"
+    assert run_script("skin_mismatch_floor", [small_case_set, "--draws", 1, "--draws-csv", out_csv]) == 0
+    assert "| phantom | area | 1 | " in capsys.readouterr().out
+    with open(out_csv) as f:
+        (row,) = list(csv.DictReader(f))
+    assert row["field"] == "area" and row["draw"] == "0" and abs(float(row["prior_mm"]) - by["area", 0]) < 1e-3
+    for settings, says in (((0, 1.0, ("area",)), "draws must be"), ((2, 0.0, ("area",)), "above 0"),
+                           ((2, float("nan"), ("area",)), "above 0"), ((2, 1.0, ("surface",)), "unknown field kind"),
+                           ((2, 1.0, ()), "no field kind")):
+        with pytest.raises(KneeInputError, match=says):
+            check_redraw(*settings)
+    for argv, says in (([small_case_set, "--draws", 0], "draws must be"),
+                       ([small_case_set, "--draws", 2, "--draw-fields", "area,surface"], "unknown field kind"),
+                       ([small_case_set, "--draws", 2, "--draw-mismatch", -1], "above 0"),
+                       ([small_case_set, "--draws-csv", tmp_path / "x.csv"], "go with --draws"),
+                       ([small_case_set, "--draws", 1, "--draws-csv", out_csv], "exists")):
+        assert run_script("skin_mismatch_floor", argv) == 2
+        _one_line_error(capsys, says)
+    assert not (tmp_path / "x.csv").exists()
+
+
 def test_mismatch_targets_carry_the_floor_of_their_own_mismatch():
     """The skin mismatch targets name what a perfect model reaches at that mismatch: the 0-1 mm line the
     1 mm floors, the 2 mm line the 2 mm ones, each with (iii)'s median over the same cases only."""

@@ -30,6 +30,7 @@ they say how much of a method's error at a mismatch is the mismatch itself.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -39,16 +40,16 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from knee.app.experiments.case_set import (case_points_cam, check_truth_edge, iter_cases, placement_camera,
-                                           read_case_set, seen_shank_points)
+from knee.app.experiments.case_set import (FIELD_WIDTHS, case_points_cam, case_rng, check_truth_edge, iter_cases,
+                                           placement_camera, read_case_set, seen_shank_points)
 from knee.app.experiments.subject_cases import anatomy_targets
 from knee.foundations.conventions import invert_poses, joint_to_pose, matrix_to_cardan, pose_to_joint, transform_points
 from knee.foundations.errors import KneeInputError
 from knee.foundations.pointclouds import backproject, icp, point_normals, voxel_downsample
 from knee.foundations.surfaces import SurfaceQuery
 from knee.models.evaluation import pose_errors
-from knee.models.fem.depth import render_depth
-from knee.models.fem.tissue import TetTissue
+from knee.models.fem.depth import DepthNoise, render_depth
+from knee.models.fem.tissue import TetTissue, smooth_surface_field
 from knee.models.fem.methods import initialise_from_prior, quasi_static, register_to_posed_skin, tibia_path
 from knee.models.fem.scene import FemSettings, build_knee_model
 from knee.models.prior import (MIN_SEEN_SHANK, TIBIA_PRIOR_AXIAL_DEG, TIBIA_PRIOR_DEG, TIBIA_PRIOR_MM, VOXEL_MM,
@@ -493,6 +494,143 @@ def skin_floor(folder, progress: Callable[[int, int, str], None] | None = None,
     if progress:
         progress(len(rows), len(rows), "done")
     return rows
+
+
+#: How :func:`redrawn_floor` may draw the skin mismatch field: "area", as the case sets draw it (the bumps' centres
+#: uniform over the skin's area, the RMS over its area); "vertex", as sets built before the field was spread by area
+#: drew it (the centres at random vertices, the RMS over the vertices), for comparison.
+FIELD_KINDS = ("area", "vertex")
+
+
+@dataclass
+class RedrawnFloorRow:
+    """One draw of :func:`redrawn_floor`: a view (its 0 mm case's id), the field's kind and draw number, the prior
+    floor's footprint error (mm; the mean of the femur's and the tibia's) and its flexion error (deg)."""
+
+    case: str
+    anatomy: str
+    mismatch_mm: float
+    field: str
+    draw: int
+    prior_mm: float
+    prior_flexion_error_deg: float
+
+
+def check_redraw(draws, mismatch_mm, fields) -> tuple:
+    """:func:`redrawn_floor`'s settings checked (the field kinds returned as a tuple): a one-line
+    :class:`KneeInputError` for fewer than one draw, a mismatch that is not a number above 0 and at most 10 mm, or
+    a field kind not in :data:`FIELD_KINDS`."""
+    if isinstance(draws, bool) or not isinstance(draws, (int, np.integer)) or draws < 1:
+        raise KneeInputError(f"the floor's draws must be a whole number from 1, got {draws!r}")
+    number = isinstance(mismatch_mm, (int, float, np.integer, np.floating)) and not isinstance(mismatch_mm, bool)
+    if not (number and 0.0 < float(mismatch_mm) <= 10.0):  # also refuses NaN
+        raise KneeInputError(f"the redrawn floor's skin mismatch must lie above 0 and at most 10 mm, got {mismatch_mm!r}")
+    fields = tuple(fields)
+    unknown = [f for f in fields if f not in FIELD_KINDS]
+    if unknown or not fields:
+        raise KneeInputError(f"unknown field kind {unknown[0]!r}: one or more of {', '.join(FIELD_KINDS)}" if unknown
+                             else f"no field kind given: one or more of {', '.join(FIELD_KINDS)}")
+    return fields
+
+
+def redrawn_floor(folder, draws: int = 6, mismatch_mm: float = 1.0, fields=("area",),
+                  progress: Callable[[int, int, str], None] | None = None,
+                  select: Callable[[dict], bool] | None = None) -> list[RedrawnFloorRow]:
+    """The prior floor (:func:`prior_floor_poses`) over fresh draws of the skin mismatch field, many per view: a case
+    set draws one field per view, so the median of its dozen views a mismatch is only as steady as a dozen draws.
+    For each 0 mm view from the paper's placement (``select``: a further filter) the truth's flexed skin is made
+    again by the set's own tissue (:class:`knee.models.fem.tissue.TetTissue`, its spacing and seed), and each of
+    ``draws`` draws renders a fresh 0 mm cloud and, per field kind of ``fields`` (:data:`FIELD_KINDS`), a cloud with
+    a field of ``mismatch_mm`` RMS, both with the set's depth noise; the floor matches the 0 mm cloud to the other
+    with the set's prior. Every kind of one draw sees the same 0 mm cloud, so kinds compare draw for draw. Each
+    view's draws are the same on every run (their own random streams). The truth's tissue is posed once a view
+    (5-110 s on the 2-core machine), the draws take about 0.3 s each. Raises :class:`KneeInputError` for fewer
+    than one draw, a mismatch that is not a positive number, an unknown field kind, a set built with the truth's
+    patella (its tissue needs the truth mechanism's patellar motion) or no 0 mm paper view."""
+    fields = check_redraw(draws, mismatch_mm, fields)
+    folder = Path(folder)
+    index = read_case_set(folder)
+    if index.get("truth_patella", False):
+        raise KneeInputError(f"{folder}: built with the truth's patella, whose tissue the redrawn floor cannot pose "
+                             "again (it needs the truth mechanism's patellar motion); use a set built without --patella")
+    seed = int(index.get("seed", 0))
+    edge = float(index.get("truth_edge_widths", 0.1))
+    noise = DepthNoise(sigma_at_ref=float(index.get("noise_sigma_mm_at_400_mm", 1.0)),
+                       flying=float(index.get("flying_pixels", 0.0)),
+                       correlation_px=float(index.get("noise_correlation_px", 0.0)),
+                       hole_px=float(index.get("hole_px", 0.0)))
+    wanted = {c["id"] for c in index["case"] if float(c["mismatch_mm"]) == 0.0 and c["camera"] == "paper"
+              and (select is None or select(c))}
+    if not wanted:
+        raise KneeInputError(f"{folder}: no 0 mm view from the paper's placement to draw the field on")
+    per_anatomy = {}
+    for c, setup, _, _ in iter_cases(folder, lambda c: c["id"] in wanted):
+        per_anatomy.setdefault(c["anatomy"], (setup, []))[1].append(c)
+    total = sum(len(cs) for _, cs in per_anatomy.values())
+    rows, done = [], 0
+    mm = float(mismatch_mm)
+    for name, ((anatomy, prior, _), cases) in per_anatomy.items():
+        tg = anatomy_targets(anatomy, prior)
+        tissue = TetTissue(anatomy, edge=edge * anatomy.width, seed=seed)
+        point_sd = effective_point_sd(anatomy.width, mm)
+        for c in cases:
+            if progress:
+                progress(done, total, f"{c['id']}: the truth's skin posed again, {draws} draws")
+            done += 1
+            T_tibia = joint_to_pose(np.asarray(c["truth_tf"], float))
+            skin = tissue.pose(T_tibia).skin(tissue)
+            verts, faces = np.asarray(skin.vertices), np.asarray(skin.faces)
+            normals = np.asarray(skin.vertex_normals)
+            cam = placement_camera(anatomy, "paper")
+            to_model = invert_poses(cam.T_cam_world)
+            rel = T_tibia @ invert_poses(anatomy.tibia_pose)
+            clean_depth = render_depth(verts, faces, cam)
+
+            def cloud(depth, rng):
+                return voxel_downsample(backproject(noise.apply(depth, rng), cam.K, to_model, drop_mixed=True), VOXEL_MM)
+
+            true_flexion = _flexion_deg(np.eye(4), rel, anatomy.tibia_pose)
+            for k in range(draws):
+                rng = case_rng(seed, c["id"], "redrawn floor", f"{mm:g}", str(k))
+                clean = cloud(clean_depth, rng)
+                for kind in fields:
+                    moved = smooth_surface_field(verts, normals, mm, FIELD_WIDTHS * anatomy.width, rng,
+                                                 faces=faces if kind == "area" else None)
+                    points = cloud(render_depth(moved, faces, cam), rng)
+                    Tf, Tt, _ = prior_floor_poses(points, clean, np.eye(4), rel, anatomy.joint_y, anatomy.tibia_pose,
+                                                  lambda a: tibia_path(prior, anatomy, a), point_sd)
+                    e = pose_errors(tg, np.eye(4), rel, Tf, Tt)
+                    rows.append(RedrawnFloorRow(c["id"], name, mm, kind, k,
+                                                0.5 * (e.femur.footprints.mean + e.tibia.footprints.mean),
+                                                _flexion_deg(Tf, Tt, anatomy.tibia_pose) - true_flexion))
+    if progress:
+        progress(total, total, "done")
+    return rows
+
+
+def redrawn_floor_table(rows) -> list[str]:
+    """Markdown lines: per anatomy (and over all) and field kind, the draws, the prior floor's median footprint
+    error with its quartiles and the flexions within 2 deg; with two kinds, the mean difference per draw of each
+    kind against the first (the same 0 mm cloud, the same view) with its standard error."""
+    kinds = list(dict.fromkeys(r.field for r in rows))
+    lines = ["| anatomy | field | draws | floor: prior, median (quartiles) | flexion within 2 deg | against "
+             f"{kinds[0]!r}, per draw (se) |", "|---|---|---:|---:|---:|---:|"]
+    anatomies = list(dict.fromkeys(r.anatomy for r in rows))
+    for name in anatomies + (["all"] if len(anatomies) > 1 else []):
+        mine = [r for r in rows if name == "all" or r.anatomy == name]
+        first = {(r.case, r.draw): r.prior_mm for r in mine if r.field == kinds[0]}
+        for kind in kinds:
+            g = [r for r in mine if r.field == kind]
+            v = np.array([r.prior_mm for r in g])
+            q1, q2, q3 = np.percentile(v, [25, 50, 75])
+            diff = "-"
+            if kind != kinds[0]:
+                d = np.array([r.prior_mm - first[(r.case, r.draw)] for r in g if (r.case, r.draw) in first])
+                if len(d) > 1:
+                    diff = f"{d.mean():+.2f} ({d.std(ddof=1) / math.sqrt(len(d)):.2f})"
+            within = sum(abs(r.prior_flexion_error_deg) <= 2.0 for r in g)
+            lines.append(f"| {name} | {kind} | {len(g)} | {q2:.2f} ({q1:.2f}-{q3:.2f}) | {within} of {len(g)} | {diff} |")
+    return lines
 
 
 @dataclass
