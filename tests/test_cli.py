@@ -276,7 +276,9 @@ def test_at_least_refuses_counts_and_numbers_out_of_range():
                                           ("bench_bone_slide", ["--pushes", "0"]),
                                           ("bench_depth_edges", ["--repeats", "0"]),
                                           ("bench_loaded", ["--cases", "0"]), ("bench_loaded", ["--rounds", "0"]),
-                                          ("bench_loaded", ["--loads", "-1"]), ("bench_loaded", ["--threads", "0"])])
+                                          ("bench_loaded", ["--loads", "-1"]), ("bench_loaded", ["--threads", "0"]),
+                                          ("bench_loaded", ["--grids", "2"]),
+                                          ("bench_loaded", ["--grids", "x"])])
 def test_scripts_refuse_counts_out_of_range_in_one_line(script, argv):
     """A benchmark script given a count or an angle out of range stops at its arguments, one line, before
     any work (a zero repeat count had ended in a median of nothing)."""
