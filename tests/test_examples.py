@@ -45,7 +45,7 @@ def test_example_fem_with_prior():
     # the demo subject's skin at 60 deg, made by the tetrahedral tissue (not the association model), seen
     # by the oblique camera: the method never sees more than that cloud
     assert r["points"] == 182807
-    assert abs(r["flexion_error_deg"]) < 2.0  # measured -0.55 deg
+    assert abs(r["flexion_error_deg"]) < 2.0  # measured -0.71 deg
     # the solver's refactorisations follow measured times: results agree to its tolerance, not bit for bit.
     # Pinned as measured on the tissue truth. The example's truth was the phantom's envelope of rigid capsules until the honest
     # benchmark's tissue truth replaced it; the FEM's choices that this benchmark favours lost there
@@ -57,10 +57,12 @@ def test_example_fem_with_prior():
     # own axis given a 5 deg prior instead of 3: 1.548 -> 1.532 mm, 1.448 -> 1.436 mm, 2.80 -> 2.84 deg. With the
     # truth's skin refined with its spacing (its long faces bisected; the method unchanged): the cloud 182946 ->
     # 182807 points, 1.532 -> 1.448 mm, 1.436 -> 1.457 mm, 2.84 -> 3.12 deg, the flexion -1.15 -> -0.55 deg, the
-    # mechanism alone 5.05 -> 4.64 mm.
-    assert r["footprints_mm"] == pytest.approx(1.448, abs=0.05)
-    assert r["epiphysis_mm"] == pytest.approx(1.457, abs=0.05)
-    assert r["tibia_correction_deg"] == pytest.approx(3.12, abs=0.1)
+    # mechanism alone 5.05 -> 4.64 mm. With the grid sized by the knee (8 x 7 on this phantom, the default; the
+    # phantom's cases lose 0.05-0.08 mm on average on the honest benchmark, this one more): 1.448 -> 1.828 mm,
+    # 1.457 -> 1.836 mm, 3.12 -> 3.19 deg, the flexion -0.55 -> -0.71 deg.
+    assert r["footprints_mm"] == pytest.approx(1.828, abs=0.05)
+    assert r["epiphysis_mm"] == pytest.approx(1.836, abs=0.05)
+    assert r["tibia_correction_deg"] == pytest.approx(3.19, abs=0.1)
     # the FEM with the prior beats the mechanism alone (iv) on the same points (measured 4.64 mm)
     assert r["mechanism_alone_footprints_mm"] == pytest.approx(4.639, abs=0.05)
     assert r["footprints_mm"] < 0.6 * r["mechanism_alone_footprints_mm"]

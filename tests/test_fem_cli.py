@@ -263,16 +263,20 @@ def test_bone_phase_reaches_the_papers_angle_or_stops_before_crushing_the_tissue
     (femur-tibia angle below 100 deg) within ten steps; held and rebased the femur
     cannot swing, the tissue behind the knee crushes first, and the phase ends at the step before (the run
     goes on, no divergence), with fewer cells inverted than a run may carry. Before the forces turned with
-    the bones, F4 pushed along the shaft past 45 deg and the knee saw-toothed below 72 deg."""
+    the bones, F4 pushed along the shaft past 45 deg and the knee saw-toothed below 72 deg. All on the paper's
+    7 x 7 grid (the paper's method on the paper's model): on the grid sized by the knee (8 x 7 here, the
+    default) the literal reading's tissue crushes before the criterion, and that stop ends its phase."""
     from knee.app.experiments.cases import run_standard_case
     from knee.models.fem.methods import MAX_INVERTED_FRACTION, bone_phase_note
-    from knee.models.fem.scene import build_association_model
+    from knee.models.fem.scene import FemSettings, build_association_model
 
-    r = run_standard_case(volunteer, 60.0, model=build_association_model(volunteer), max_steps=30).reconstruction
+    paper_grid = FemSettings(n_across=7)
+    r = run_standard_case(volunteer, 60.0, model=build_association_model(volunteer, paper_grid),
+                          max_steps=30).reconstruction
     assert r.bone_phase_end == "angle" and r.steps_bone_phase <= 10 and r.bone_phase_flexion_deg > 80.0
     flex = r.history["flexion_deg"][:r.steps_bone_phase]
     assert np.all(np.diff(flex) > 0)  # no saw-tooth
-    model = build_association_model(volunteer)
+    model = build_association_model(volunteer, paper_grid)
     r = run_standard_case(volunteer, 60.0, model=model, max_steps=40, hold_femur=True,
                           rebase_after_bones=True).reconstruction
     assert r.bone_phase_end == "crushed" and "crushed" in bone_phase_note(r)

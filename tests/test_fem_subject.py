@@ -86,21 +86,32 @@ def test_the_bones_of_a_subject_in_the_cameras_frame(case):
         np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9)
     assert set(r["tf_joint_coordinates"]) == {"flexion", "adduction", "internal_rotation", "anterior", "proximal",
                                               "lateral"}
-    assert r["model"]["cells_across"] == 7  # the model's default grid, said in the result
-
-
-def test_a_finer_grid_on_request(case):
-    """``--cells-across 12`` builds the model with 12 cells across the limb instead of 7 (more cells, said in
-    the result) and reads the same knee: the flexion within 2 deg of the truth and the femur within the default
-    run's bounds. ``12,7`` refines x only (fewer cells than 12 each way, more than 7); ``knee`` sizes x by the
-    knee and says the pair it used."""
+    # the model's default grid, said in the result: sized by the knee (x cells of about a sixth of the femur's
+    # width over the skin's box, the paper's 7 across z)
     import knee
     from knee.fitting.subject import load_subject
     from knee.fitting.subject_anatomy import subject_anatomy
-    from knee.models.fem.scene import build_knee_model
+    from knee.models.fem.grid import GRID_MARGIN_MM
+
+    anatomy = subject_anatomy(load_subject(case["dir"]), knee.load_model(case["tmp"] / "prior.toml"))
+    depth = anatomy.skin.bounds[1][0] - anatomy.skin.bounds[0][0] + 2 * GRID_MARGIN_MM
+    assert r["model"]["cells_across"] == [min(24, max(7, round(6 * depth / anatomy.width))), 7]
+
+
+def test_a_finer_grid_on_request(case):
+    """``--cells-across 12`` builds the model with 12 cells across the limb each way (more cells than the
+    paper's 7 x 7, said in the result) and reads the same knee: the flexion within 2 deg of the truth and the
+    femur within the default run's bounds. ``12,7`` refines x only (fewer cells than 12 each way, more than 7);
+    ``knee`` (the default, asked for by name) sizes x by the knee and says the pair it used; ``7`` is the
+    paper's grid."""
+    import knee
+    from knee.fitting.subject import load_subject
+    from knee.fitting.subject_anatomy import subject_anatomy
+    from knee.models.fem.scene import FemSettings, build_knee_model
 
     prior = knee.Mechanism(knee.load_model(case["tmp"] / "prior.toml"))
-    default_cells = len(build_knee_model(subject_anatomy(load_subject(case["dir"]), prior.params), prior=prior).grid.cells)
+    default_cells = len(build_knee_model(subject_anatomy(load_subject(case["dir"]), prior.params),
+                                         FemSettings(n_across=7), prior=prior).grid.cells)  # the paper's 7 x 7
     out = case["tmp"] / "fine"
     p = run("fem", case["dir"], "--prior", case["tmp"] / "prior.toml", "--cloud", case["tmp"] / "cloud.ply",
             "--initial-pose", case["tmp"] / "pose.txt", "--cells-across", "12", "--out", out, "--quiet")

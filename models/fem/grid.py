@@ -1,7 +1,8 @@
 """The soft-tissue grid: a sparse rectilinear hexahedral grid enclosing the knee's skin (seed 000, 2.1).
 
 The grid is axis-aligned in the frame it is built in (the femur frame at extension: y is the limb's
-long axis). ``n_across`` cells span x and z (default 7 x 7, as in the paper). Along y the spacing is
+long axis). ``n_across`` cells span x and z (default 7 x 7, as in the paper; the association model sizes x by
+the knee instead: :func:`knee.models.fem.scene.knee_sized_across`). Along y the spacing is
 ``element_size``, or, with ``joint_y`` given, graded: ``joint_size`` within ``joint_half_width`` of the
 joint line, growing by ``growth`` per cell up to ``element_size`` away from it, so the soft joint space
 between femur and tibia spans whole cells (the paper's uniform 7 x 7 x 300 grid does this with
@@ -24,7 +25,8 @@ from knee.foundations.surfaces import SurfaceQuery, closed_surface
 INSIDE, BOUNDARY = 0, 1  # a cell's status (cells outside the skin are dropped)
 #: mm: how far the grid's box reaches beyond the skin's on every side (:func:`build_grid`'s ``margin``).
 GRID_MARGIN_MM = 1.0
-#: The paper's cells across the limb, each way (seed 000's 7 x 7 grid): the model's default.
+#: The paper's cells across the limb, each way (seed 000's 7 x 7 grid): the model's across the medio-lateral axis
+#: (z), and the least along the anteroposterior one (x) (:func:`knee.models.fem.scene.knee_sized_across`).
 PAPER_CELLS_ACROSS = 7
 
 

@@ -39,9 +39,9 @@ from knee.models.fem.mapping import TrilinearMapping
 from knee.models.mechanism.solver import Mechanism
 from knee.models.phantom import Phantom, build_phantom
 
-#: ``FemSettings.n_across = "knee"``: cells across the limb's anteroposterior axis (x) of about this fraction of
-#: the femur's distal width, and the paper's :data:`PAPER_CELLS_ACROSS` across it (z) and at least that along x
-#: (:func:`knee_sized_across`).
+#: ``FemSettings.n_across = "knee"`` (the default): cells across the limb's anteroposterior axis (x) of about
+#: this fraction of the femur's distal width, and the paper's :data:`PAPER_CELLS_ACROSS` across it (z) and at
+#: least that along x (:func:`knee_sized_across`).
 KNEE_CELL_WIDTHS = 1.0 / 6.0
 #: The most cells along x a grid sized by the knee takes (:func:`knee_sized_across`): a skin box four femoral
 #: widths deep; a leg's is about two and a half.
@@ -59,13 +59,14 @@ class FemSettings:
     line (``n_along`` instead gives a uniform grid, e.g. the paper's 300); ``shaft_length`` of the phantom
     bones; ``cartilage`` set-back of the articular surfaces; materials, collateral spring stiffness,
     contact penalty and reach, time step and Rayleigh damping; ``bone_tets`` the target element count;
-    ``n_across="knee"`` sizes x by the knee (:func:`knee_sized_across`; the model's settings then carry the
-    pair it used); ``grid_offset`` another placement of the same grid (:func:`knee.models.fem.grid.build_grid`'s
-    ``offset``); ``soft_element`` the tissue cells' stiffness (:data:`knee.models.fem.elements.HEX_ELEMENTS`: the
-    paper's ``"trilinear"``, or ``"incompatible"``, which bends without spurious shear). Both measured on
-    the honest benchmark and left at the paper's (BENCHMARKS.md)."""
+    ``n_across="knee"`` (the default) sizes x by the knee (:func:`knee_sized_across`; the model's settings then
+    carry the pair it used; the paper's 7 x 7 is ``n_across=7``); ``grid_offset`` another placement of the same
+    grid (:func:`knee.models.fem.grid.build_grid`'s ``offset``); ``soft_element`` the tissue cells' stiffness
+    (:data:`knee.models.fem.elements.HEX_ELEMENTS`: the paper's ``"trilinear"``, or ``"incompatible"``, which
+    bends without spurious shear). These two measured on the honest benchmark and left at the paper's
+    (BENCHMARKS.md)."""
 
-    n_across: int | tuple | str = PAPER_CELLS_ACROSS
+    n_across: int | tuple | str = "knee"
     element_size: float = 18.0
     joint_size: float = 3.0
     joint_half_width: float = 15.0
@@ -291,14 +292,19 @@ def knee_sized_across(skin_bounds, width: float, cell_widths: float = KNEE_CELL_
     ``least`` and at most ``most`` (a skin box many femoral widths deep would otherwise ask for a grid whose
     matrix grows with the square of the count); across it, z, ``least``.
 
-    Why x alone: what a coarse grid gets wrong on a real leg is the femur's place along x (the posed knee's
-    front too thick by a fraction of a cell), and cells of about a sixth of the femoral width along x remove
-    most of it (BENCHMARKS.md, "A finer grid on request"). The paper's count is per skin box: a whole leg's
-    skin spans twice or more its femoral width across x, and 7 cells there are a third of the femur wide.
-    Measured at 0-1 mm skin mismatch, against 7 x 7, per case: the Visible Human (14 x 7) 0.23 mm better on
-    five seeds and 0.15 held out, lenhart2015 (15 x 7) 0.25, the phantom (9 x 7) 0.08-0.11 worse against its
-    unconverged truth; at 2 mm 0.01-0.29 mm worse; the median over both anatomies' five seeds unmoved, so it is
-    an option, not the default."""
+    Why by the knee: the paper's count is per skin box, so the cells at the knee grow with how much of the leg
+    the scan holds and how thick the thigh is (a whole leg's skin spans twice or more its femoral width across
+    x, and 7 cells there are a third of the femur wide); sized by the knee, a scan's extent no longer sets the
+    model's resolution at the joint. Why x alone: what a coarse grid gets wrong on a real leg is the femur's
+    place along x (the posed knee's front too thick by a fraction of a cell), and cells of about a sixth of the
+    femoral width along x remove most of it (BENCHMARKS.md, "A finer grid on request").
+
+    The model's default since it was measured on the honest benchmark's truth with the refined skin
+    (BENCHMARKS.md, "The grid sized by the knee made the default"), against 7 x 7 at 0-1 mm skin mismatch:
+    per case 0.09 mm better on the five seeds the method's choices were made on (se 0.05; the median 2.20 ->
+    2.30 mm), 0.11 held out (se 0.05; 2.51 -> 2.35) and 0.10 on lenhart2015 (se 0.04; 1.93 -> 1.79); the
+    Visible Human (14 x 7) and lenhart2015 (15 x 7) gain, the phantom (9 x 7) loses 0.05-0.10 mm a case; the
+    flexion within 2 deg in 240, 230 and 103 views against 232, 227 and 92."""
     lo, hi = np.asarray(skin_bounds, float)
     if not width > 0:
         raise KneeInputError(f"the femur's width must be positive to size the grid by the knee, got {width}")

@@ -13,11 +13,11 @@
     knee osteotomy MODEL --bone tibia|femur --angle 8 [--plane px,py,pz,nx,ny,nz] [--hinge hx,hy,hz,ax,ay,az]
                    [--release mcl] [--trial CSV] [--mass 72] [--height 1.75] [--out DIR] [--force]
     knee compare MODEL [--truth MODEL] [--flexion 30:120:15] [--cameras oblique,frontal,lateral] [--out DIR]
-    knee compare CASE_SET [--methods links,kinematics,init,paper] [--only ID,...] [--cells-across 7|NX,NZ|knee] [--out DIR]
+    knee compare CASE_SET [--methods links,kinematics,init,paper] [--only ID,...] [--cells-across knee|N|NX,NZ] [--out DIR]
     knee fem MODEL [--flexion 90] [--truth MODEL] [--camera oblique|frontal|lateral|AZ,EL,DIST] [--rrd FILE]
              [--cloud FILE | --depth FILE --intrinsics fx,fy,cx,cy [--depth-scale 1]] [--keep-flying] [--pose FILE]
     knee fem SUBJECT_DIR --prior FITTED.toml (--depth FILE --intrinsics fx,fy,cx,cy | --cloud FILE)
-             [--initial-pose FILE] [--method links|init|kinematics|paper] [--cells-across 7|NX,NZ|knee] --out DIR
+             [--initial-pose FILE] [--method links|init|kinematics|paper] [--cells-across knee|N|NX,NZ] --out DIR
 
 Angles in degrees, lengths in mm. Exit codes: 0 success; 2 bad input or an output that cannot be written
 (one line ``knee: error: ...``); 3 a numerical failure on good input (the mechanism does not assemble, a
@@ -52,11 +52,10 @@ COMMANDS = {"models": "models", "sweep": "sweep", "demo": "demo", "synth-subject
 #: same bound as a grid sized by the knee keeps to (:data:`knee.models.fem.scene.KNEE_SIZED_MOST`, not imported
 #: here so that the parser stays light).
 MAX_CELLS_ACROSS = 24
-CELLS_ACROSS_HELP = ("cells across the limb of the association model's grid: N each way, or NX,NZ (x anteroposterior, "
-                     "z medio-lateral; 7), or 'knee': x cells of about a sixth of the femur's width, 7 across z. "
-                     "14 halves the cells: on a real leg the femur no longer sits where the cells happen to fall, "
-                     "at about twice the time; 14,7 refines the anteroposterior axis only, with most of that gain at "
-                     "a third more time (README, 'The model's grid')")
+CELLS_ACROSS_HELP = ("cells across the limb of the association model's grid: 'knee' (the default): x (anteroposterior) "
+                     "cells of about a sixth of the femur's width, 7 across z (medio-lateral); or N each way (7: the "
+                     "paper's grid), or NX,NZ. 14 halves the paper's cells each way, at about twice the time "
+                     "(README, 'The model's grid')")
 
 
 def cells_across(text: str):
