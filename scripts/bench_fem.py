@@ -31,11 +31,12 @@ def run_one(cfg: dict) -> dict:
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
 
+    from knee.models.fem.grid import PAPER_CELLS_ACROSS
     from knee.models.fem.scene import FemSettings, build_association_model, knee_angles
     from knee.models.mechanism import Mechanism
 
     t0 = time.perf_counter()
-    settings = FemSettings(n_across=7, n_along=cfg.get("n_along"))  # the paper's grid across the limb
+    settings = FemSettings(n_across=PAPER_CELLS_ACROSS, n_along=cfg.get("n_along"))  # the paper's grid across
     model = build_association_model(Mechanism.from_name("volunteer"), settings)
     build = time.perf_counter() - t0
     s = model.solver

@@ -79,12 +79,13 @@ def test_association_model_is_built_as_specified(knee_model, volunteer):
     """Seed 000's model: bone tetrahedra, springs, contact and time step as specified; the grid sized by the
     knee (the default: the paper's 7 cells across z, along x cells of about a sixth of the femur's width over
     the skin's box, at least 7), and the paper's 7 x 7 on request."""
+    from knee.models.fem.grid import GRID_MARGIN_MM
     from knee.models.fem.scene import FemSettings, build_association_model, phantom_anatomy
 
     m = knee_model
     anatomy = phantom_anatomy(volunteer)[0]
     lo, hi = anatomy.skin.bounds
-    depth = hi[0] - lo[0] + 2.0  # the grid's box along x: the skin's and a millimetre's margin each side
+    depth = hi[0] - lo[0] + 2 * GRID_MARGIN_MM  # the grid's box along x: the skin's and its margin each side
     assert m.grid.shape[2] == 7 and m.grid.shape[0] == min(24, max(7, round(6.0 * depth / anatomy.width)))
     assert tuple(m.settings.n_across) == (m.grid.shape[0], 7)  # the model keeps the counts it used
     assert tuple(build_association_model(volunteer, FemSettings(n_across=7)).grid.shape[::2]) == (7, 7)

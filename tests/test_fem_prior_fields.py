@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from knee.models.fem.fields import MappedSprings, affine_point_map
-from knee.models.fem.scene import build_association_model
+from knee.models.fem.scene import FemSettings, build_association_model
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +112,6 @@ def test_wide_attachment_is_exact_for_affine_motion_and_damps_local_deformation(
     7 x 7 grid, where it was measured; on the grid sized by the knee (8 x 7 here, the default), whose cells
     along x are narrower, the same bump moves it 0.64 of the near attachment's move."""
     from knee.foundations.conventions import joint_to_pose, transform_points
-    from knee.models.fem.scene import FemSettings
 
     model = build_association_model(volunteer, FemSettings(n_across=7))
 
@@ -262,8 +261,6 @@ def test_a_small_move_of_the_tibia_reaches_its_equilibrium_in_one_step(volunteer
     from knee.foundations.conventions import invert_poses, transform_points
     from knee.models.fem.methods import SMALL_MOVE_SETTLE, initialise_from_prior, move_tibia, quasi_static, tibia_path
     from knee.models.prior import small_pose
-
-    from knee.models.fem.scene import FemSettings
 
     assert SMALL_MOVE_SETTLE == 0
     paper_grid = FemSettings(n_across=7)  # where it was measured (the default grid: the text above)
@@ -505,8 +502,6 @@ def test_grid_nodes_tied_to_a_bone_only_weakly_are_held_at_the_reference(carry):
     from knee.app.demo import demo_anatomy, demo_case
     from knee.models.fem.methods import initialise_from_prior, quasi_static
     from knee.models.fem.scene import build_knee_model
-
-    from knee.models.fem.scene import FemSettings
 
     _, prior = demo_case(3, 2.0)
     # the paper's 7 x 7 grid, whose cells behind the knee crush so that such nodes occur (the grid sized by
