@@ -300,7 +300,10 @@ def test_a_diverging_surface_phase_falls_back_to_the_initialisation(model, volun
     def no_steps(model_, surf, max_steps, steps):
         return steps, False
 
+    started = []
+
     def blow_up(model_, surf, max_steps, steps):
+        started.append(model_.solver.x.copy())  # the state the surface phase started from
         model_.solver.x[:] += 1e3  # what a blow-up leaves behind
         raise DivergenceError("the FEM diverged at step 9: energy blow-up", 9)
 
@@ -317,8 +320,12 @@ def test_a_diverging_surface_phase_falls_back_to_the_initialisation(model, volun
     monkeypatch.setattr(fm, "surface_phase", blow_up)
     r = fm.prior_method("init", fresh(), volunteer, pts)
     assert any("surface phase diverged" in n for n in r.notes) and not r.converged and r.steps == 9
-    np.testing.assert_allclose(r.grid_x, ref.grid_x, atol=0.05)  # a blow-up left in would be 1000 mm off
-    assert abs(r.flexion_deg - ref.flexion_deg) < 1e-3
+    # exactly the state the surface phase started from (a blow-up left in would be 1000 mm off)
+    np.testing.assert_array_equal(r.grid_x.ravel(), started[0].ravel())
+    # and the same as with no surface step, to the runs' agreement: the registrations' threaded sums differ
+    # in their last digits between runs, 0.075 mm at most at a node on a loaded two-core machine
+    np.testing.assert_allclose(r.grid_x, ref.grid_x, atol=0.25)
+    assert abs(r.flexion_deg - ref.flexion_deg) < 0.05
 
 
 def test_papers_method_held_and_rebased_holds_the_femur_and_keeps_the_bone_phases_flexion(volunteer):
@@ -709,19 +716,27 @@ def test_an_overlap_is_split_between_the_femur_and_the_tibia_in_the_world(volunt
         return out, slide
 
     monkeypatch.setattr(fm, "keep_bones_apart", overlap)
-    runs = {share: fm.prior_method("init", build_association_model(volunteer), volunteer, pts, apart_share=share)
-            for share in (0.0, 0.5, 1.0)}
+    def fresh():
+        # refreshes by a fixed rule, not the machine's load (see the test of a diverging surface phase)
+        m = build_association_model(volunteer)
+        m.solver.adaptive_refresh = m.solver.predict_refresh = False
+        return m
+
+    runs = {share: fm.prior_method("init", fresh(), volunteer, pts, apart_share=share) for share in (0.0, 0.5, 1.0)}
+    # the runs agree only to the registrations' threaded sums: 0.01 mm apart once on a loaded two-core machine;
+    # the slides compared are 1-2 mm, so a cloud left behind would be far outside this
+    agree = 0.05
     assert all("apart" in r.stages for r in runs.values())
     for (share, r), cloud, T_slid in zip(runs.items(), clouds, seen):
-        # each run against its own stage before the slide (the runs agree only to the ICP's threaded sums)
+        # each run against its own stage before the slide
         (Tw0, rel0) = r.stages["posed_skin"]
-        assert Tw0 == pytest.approx(runs[0.0].stages["posed_skin"][0], abs=1e-3)
+        assert Tw0 == pytest.approx(runs[0.0].stages["posed_skin"][0], abs=agree)
         slide = T_slid[:3, 3] - rel0[:3, 3]
         Tw, rel = r.stages["apart"]
         # the cloud the surface forces pull to moved with the femur: it is the same cloud in the world
         # (the share-0 run's, whose cloud did not move; to the runs' agreement)
         np.testing.assert_allclose(transform_points(Tw, cloud), transform_points(*runs[0.0].stages["posed_skin"][:1],
-                                                                                 clouds[0]), atol=1e-3)
+                                                                                 clouds[0]), atol=agree)
         np.testing.assert_allclose(rel, T_slid, atol=1e-9)
         # the femur moved by -share * slide in the world, the tibia by (1 - share) * slide
         np.testing.assert_allclose(Tw[:3, 3] - Tw0[:3, 3], -share * Tw0[:3, :3] @ slide, atol=1e-6)
