@@ -205,6 +205,37 @@ def test_mapped_bone_field_matches_embedding_then_elements(capsule_grid):
     np.testing.assert_allclose(field.el.Rt, np.broadcast_to(np.eye(3), field.el.R.shape))
 
 
+def test_a_bone_fields_reserved_pattern_holds_its_matrix_however_the_bone_turns(capsule_grid):
+    """J^T K J at the scan (no rotation) has entries that cancel to exactly zero, which a turned bone's
+    matrix holds: the reserved pattern holds both, so the solver's pattern does not change mid-motion."""
+    from scipy.spatial.transform import Rotation
+
+    from knee.models.fem.fields import MappedBoneElasticity
+
+    skin, g = capsule_grid
+    bone = trimesh.creation.icosphere(subdivisions=2, radius=30.0)
+    Xb, tets = tetrahedralize(bone, 12.0)
+    field = MappedBoneElasticity(g, Xb, tets, E=1500.0, nu=0.3)
+    reserve = field.pattern_reserve().tocoo()
+    reserved = set(zip(reserve.row.tolist(), reserve.col.tolist()))
+
+    def keys(M):
+        M = M.tocoo()
+        return set(zip(M.row[M.data != 0].tolist(), M.col[M.data != 0].tolist()))
+
+    field.forces(g.X)
+    at_scan = keys(field.matrix())
+    R = Rotation.from_rotvec([0.3, -0.5, 0.4]).as_matrix()
+    field.forces(g.X @ R.T)  # the whole grid turned: the bone's elements take its rotation
+    turned = keys(field.matrix())
+    assert turned - at_scan  # the turned bone's matrix holds entries the scan's lacks
+    assert at_scan <= reserved and turned <= reserved
+    # and no more than the bone reaches: every reserved coupling joins nodes of cells holding one tetrahedron
+    cells_of = field.map.nodes  # (P, 8) the grid nodes each bone node is embedded with
+    reach = {(int(a), int(b)) for t in tets for a in cells_of[t].ravel() for b in cells_of[t].ravel()}
+    assert {(r // 3, c // 3) for r, c in reserved} == reach
+
+
 def test_signed_distance_signs_agree_with_the_half_spaces_of_a_convex_hull():
     """Inside and outside of a closed mesh as the convex hull's half-spaces say, for a million points at random
     around it (those within 1e-3 mm of a face plane left out): one ray per point (open3d's default) miscounts

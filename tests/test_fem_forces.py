@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from knee.models.fem.forces import BoneForces, SurfaceForces
 
@@ -252,3 +253,41 @@ def test_depth_point_forces_pair_each_point_with_the_exact_nearest_point_of_the_
     near = exact < f.reference
     assert 0 < near.sum() < len(near) and len(corners) == near.sum()
     np.testing.assert_allclose(np.linalg.norm(f.thinned[near] - paired, axis=1), exact[near], atol=1e-3)
+
+
+def test_depth_point_forces_factorise_each_vertex_block_within_its_cell(knee_model):
+    """What the solver factorises for the depth points' springs: the whole stiffness's per-vertex 3 x 3
+    blocks (taken here from C^T C built pair by corner, independently of the field's sums) carried to the
+    grid, with no coupling between a face's corners. Its entries couple only nodes of one cell (within the
+    tissue's pattern), and where every point sits on a face's corner it is the whole stiffness."""
+    import trimesh
+
+    from knee.models.fem.forces import DepthPointForces
+
+    m = knee_model
+    skin = trimesh.Trimesh(m.skin_vertices, m.skin_faces, process=False)
+    f = DepthPointForces(m.grid, skin.vertices, skin.faces, _front_samples(m, 3000) + [1.5, 0.0, 0.0], k=2.0)
+    f.forces(m.grid.X)
+    corners, w, n = f._pairs
+    S, P = len(skin.vertices), len(corners)
+    rows = np.repeat(np.arange(P), 9)
+    cols = (3 * corners[:, :, None] + np.arange(3)).ravel()
+    C = sp.csr_matrix(((w[:, :, None] * n[:, None, :]).ravel(), (rows, cols)), shape=(P, 3 * S))
+    whole = (C.T @ C).tocoo()
+    own = whole.row // 3 == whole.col // 3  # a vertex with itself
+    blocks = sp.csr_matrix((whole.data[own], (whole.row[own], whole.col[own])), shape=whole.shape)
+    want = f.k_point * (f.map.J3.T @ blocks @ f.map.J3)
+    F = f.factor_matrix()
+    assert abs(F - want).max() <= 1e-12 * abs(want).max()
+    assert abs(f.matrix() - F).max() > 1e-3 * abs(want).max()  # the corners' couplings are what it leaves out
+    # only nodes of one cell coupled
+    r, c = F.nonzero()
+    in_cell = sp.csr_matrix((np.ones(m.grid.cells.size), (np.repeat(np.arange(len(m.grid.cells)), 8),
+                                                           m.grid.cells.ravel())))
+    share = (in_cell.T @ in_cell).tocsr()
+    assert np.all(np.asarray(share[r // 3, c // 3]).ravel() > 0)
+    # every point on a corner of its face (weights 1, 0, 0): nothing left out
+    on_corner = DepthPointForces(m.grid, skin.vertices, skin.faces, skin.vertices[np.unique(corners[:, 0])], k=2.0,
+                                 voxel=0.5)
+    on_corner.forces(m.grid.X)
+    assert abs(on_corner.factor_matrix() - on_corner.matrix()).max() <= 1e-12 * abs(on_corner.matrix()).max()

@@ -85,6 +85,48 @@ def test_reserved_entries_keep_the_pattern_and_an_outgrown_one_is_rebuilt():
     assert small.keys.size <= 1.05 * size + _sym(n, 0.05, 15).nnz
 
 
+def test_a_few_more_held_dofs_keep_the_pattern_with_their_couplings_zeroed():
+    """Nodes held after the pattern was made (left with no element when the reference is rebased) stay in it
+    with zero couplings and a unit diagonal: the same matrix as taking them out, on the same pattern (no new
+    symbolic analysis). A freed DOF, or many more held, makes the pattern again without the held ones."""
+    from knee.models.fem.system import HELD_IN_PATTERN
+
+    n = 300
+    rng = np.random.default_rng(5)
+    d = rng.uniform(5, 10, n)
+    mats = [_sym(n, 0.03, 1)]
+    free = np.ones(n)
+    free[:10] = 0.0
+    sa = SystemAssembler(n)
+    ip0, ix0, _ = sa.assemble(d, mats, 0.4, free)
+    v = sa.version
+    more = free.copy()
+    more[10:10 + int(HELD_IN_PATTERN * n)] = 0.0  # as many more as the pattern keeps
+    indptr, indices, data = sa.assemble(d, mats, 0.4, more)
+    assert sa.version == v and np.array_equal(indptr, ip0) and np.array_equal(indices, ix0)
+    np.testing.assert_allclose(symmetric_from_lower(n, indptr, indices, data).toarray(),
+                               _reference(d, mats, 0.4, more), atol=1e-12)
+    # back to the pattern's own held set: the couplings zeroed a moment ago are back
+    indptr, indices, data = sa.assemble(d, mats, 0.4, free)
+    assert sa.version == v
+    np.testing.assert_allclose(symmetric_from_lower(n, indptr, indices, data).toarray(),
+                               _reference(d, mats, 0.4, free), atol=1e-12)
+    freed = free.copy()
+    freed[0] = 1.0
+    sa.assemble(d, mats, 0.4, freed)
+    assert sa.version > v
+    many = freed.copy()
+    many[:int(2 * HELD_IN_PATTERN * n) + 12] = 0.0
+    v = sa.version
+    indptr, indices, data = sa.assemble(d, mats, 0.4, many)
+    assert sa.version > v
+    cols = np.repeat(np.arange(n), np.diff(indptr))
+    held = np.nonzero(many == 0)[0]
+    assert not np.any(np.isin(indices, held) & (indices != cols))  # taken out, not zeroed
+    np.testing.assert_allclose(symmetric_from_lower(n, indptr, indices, data).toarray(),
+                               _reference(d, mats, 0.4, many), atol=1e-12)
+
+
 def test_refactorizer_reuses_the_analysis_and_solves_exactly():
     n = 80
     rng = np.random.default_rng(3)

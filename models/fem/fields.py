@@ -89,6 +89,21 @@ class MappedBoneElasticity:
     def bone_positions(self, x):
         return self.map.apply(x)
 
+    def pattern_reserve(self) -> sp.csr_matrix:
+        """Every grid-DOF coupling J^T K J can hold: each tetrahedron couples every node of the cells its
+        four nodes lie in, all three directions with all three. The matrix's own pattern is narrower where
+        its entries cancel to exactly zero (a bone at its scanned pose, unrotated), and widens once the bone
+        turns: reserved up front, the solver's pattern (and its symbolic analysis) does not change mid-motion.
+        Values are placeholders; only the pattern counts."""
+        J = self.map.J.copy()
+        J.data[:] = 1.0  # the embedding's structure, zero weights included (a node on a cell's face)
+        tets = np.asarray(self.el.cells)
+        inc = sp.csr_matrix((np.ones(tets.size), (np.repeat(np.arange(len(tets)), tets.shape[1]), tets.ravel())),
+                            shape=(len(tets), J.shape[0]))
+        touched = inc @ J  # (E, N): the grid nodes each tetrahedron reaches
+        nodes = (touched.T @ touched).tocsr()
+        return sp.kron(nodes, np.ones((3, 3)), format="csr")
+
     def forces(self, x):
         return self.sc.scatter(self.el.element_forces(None, xe=self.sc.gather(x)))
 

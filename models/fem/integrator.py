@@ -21,7 +21,9 @@ refactorisation and the few iterations after one (the matrix has moved too far f
 e.g. when many surface springs or contact pairs switch at once; both costs are measured as the solver
 runs): the solve then finishes from where it stopped with the new factors. The conjugate-gradient loop is
 the toolkit's own, for that residual history. Fields that offer ``low_rank_factor()`` (springs between
-wide bone attachments) enter the preconditioner by the Woodbury identity instead of the assembled matrix.
+wide bone attachments) enter the preconditioner by the Woodbury identity instead of the assembled matrix;
+fields that offer ``factor_matrix()`` (the depth points' springs) are factorised by that narrower matrix,
+their iterations still using the whole stiffness.
 """
 
 from __future__ import annotations
@@ -164,8 +166,9 @@ class ImplicitEuler:
         sysm = self._assembler()
         if self._refactor is None or self._refactor.prefer != self.factor_backend:
             self._refactor = Refactorizer(self.factor_backend)
-        indptr, indices, data = sysm.assemble(np.repeat(self._cm * self.m, 3), [f.matrix() for f in self.fields],
-                                              self._ck, self._free)
+        # a field may offer a narrower matrix to factorise (factor_matrix) than the one its iterations use
+        mats = [getattr(f, "factor_matrix", f.matrix)() for f in self.fields]
+        indptr, indices, data = sysm.assemble(np.repeat(self._cm * self.m, 3), mats, self._ck, self._free)
         self._lu = self._refactor.factor(sysm.version, n3, indptr, indices, data)
         # low-rank fields (springs between wide bone attachments) by the Woodbury identity:
         # (A + c U U^T)^-1 = A^-1 - Z (I/c + U^T Z)^-1 Z^T, Z = A^-1 U

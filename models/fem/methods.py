@@ -857,8 +857,8 @@ BONE_CARRY = "nodes"
 BONE_ANCHOR_K = 1.0e4
 
 
-#: Settling steps after the tibia's small moves from the prior's initialised pose (its second correction, the
-#: slide apart: a few mm and degrees). One quasi-static step puts the bones' nodes where they go and the skin
+#: Settling steps after the tibia's small move from the prior's initialised pose (its second correction and
+#: the slide apart, made together as one move: a few mm and degrees). One quasi-static step puts the bones' nodes where they go and the skin
 #: within a tenth of the move of where a second step puts it (at 60 deg, 1 deg and 1 mm: 0.24 of 3.0 mm,
 #: 95th percentiles). A second step changed the footprints by 0.001 mm (median of ten views of the honest
 #: benchmark's seed 1; 0.025 mm at most) and cost a refactorisation, 0.5 s of a case's 4.8 s with the bones
@@ -893,10 +893,12 @@ def move_tibia(model: AssociationModel, poses, settle: int = 1, rebase: bool = T
     s = model.solver
     X = model.grid.X
     moves = np.asarray(poses, float) @ invert_poses(model.tibia_pose)
-    # the contact pairs the tibia's motion along the increments can bring, in the pattern from the start
-    # (one symbolic analysis instead of one per increment that brings new pairs)
-    s.reserve_pattern(model.contact.pattern_reserve_for_motion(np.concatenate([np.eye(4)[None], moves])))
     schedule = list(moves) + [moves[-1]] * settle
+    if len(schedule) > 1:
+        # the contact pairs the tibia's motion along the increments can bring, in the pattern from the start
+        # (one symbolic analysis instead of one per increment that brings new pairs); a move of one step
+        # refactorises before it moves, so pairs it brings reach the matrix only after it, on demand
+        s.reserve_pattern(model.contact.pattern_reserve_for_motion(np.concatenate([np.eye(4)[None], moves])))
     if carry == "nodes":
         Xf, Xt = model.femur.map.apply(X), model.tibia.map.apply(X)  # the bones' nodes at the scan
         anchors = [MappedAnchors(model.femur.map, Xf, BONE_ANCHOR_K), MappedAnchors(model.tibia.map, Xt, BONE_ANCHOR_K)]
@@ -1213,6 +1215,9 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     s = model.solver
     with quasi_static(s):
         steps = initialise_from_prior(model, prior, est.flexion, correction_xi=corr.xi)
+        # the tibia's small moves after the initialisation (its second correction, the slide apart) are both
+        # decided from poses alone, so the grid makes them in one move: one refactorisation, not two
+        moved = False
         if refine_on_posed_skin:
             # the femur placed again by the knee's and the thigh's points on the skin the initialisation posed
             # (the thigh alone leaves it free along its axis); the shank's points moved with it, so the tibia's
@@ -1225,7 +1230,7 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
                 again = correct_tibia(shank, pts_model, est.flexion, adapt_point_sd=adapt_point_sd)
                 if again.applied:
                     corr = again
-                    steps += move_tibia(model, corr.T[None], settle=SMALL_MOVE_SETTLE)
+                    moved = True
                 stages["posed_skin"] = (T_world, corr.T)
             else:
                 notes.append(f"the cloud does not fit the posed skin (ICP fitness {fit_posed:.2f}; 0 when fewer than "
@@ -1245,8 +1250,10 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
                 d = apart_share * slide
                 pts_model = pts_model + d
                 T_world = T_world @ small_pose(np.r_[np.zeros(3), -d])
-                steps += move_tibia(model, T_tib[None], settle=SMALL_MOVE_SETTLE)
+                moved = True
             stages["apart"] = (T_world, T_tib)
+        if moved:
+            steps += move_tibia(model, T_tib[None], settle=SMALL_MOVE_SETTLE)
         if surface_springs == "from_points":
             surf = DepthPointForces(model.grid, model.skin_vertices, model.skin_faces, pts_model, k=2.0)
         else:

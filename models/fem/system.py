@@ -140,17 +140,37 @@ class SystemAssembler:
 
     def _held_out(self, free, data):
         """The held DOFs' rows and columns taken out of the pattern (not merely zeroed: CHOLMOD's ordering
-        would still see them as couplings), their diagonal set to 1."""
-        key = (self._pattern_version, free.tobytes())
-        if key != self._held_key:
-            keep = (free[self.rows] * free[self.cols] > 0) | (self.rows == self.cols)
-            self._keep = np.nonzero(keep)[0]
-            cols = self.cols[self._keep]
-            self._out = (np.concatenate([[0], np.cumsum(np.bincount(cols, minlength=self.n))]).astype(np.int64),
-                         self.indices[self._keep])
-            self._out_diag = np.searchsorted(self._keep, self.diag_pos)
-            self._held_key = key
-            self.version += 1
+        would still see them as couplings), their diagonal set to 1. A few DOFs held beyond those the
+        returned pattern was made for (up to :data:`HELD_IN_PATTERN` of the DOFs: nodes left with no element
+        when the reference is rebased) stay in it, their couplings zeroed, so that the pattern, and with it
+        the factorisation's symbolic analysis, is kept."""
+        if self._held_key is not None and self._held_key[0] == self._pattern_version:
+            was = self._held_free
+            more = (free == 0) & (was > 0)
+            if not np.any((free > 0) & (was == 0)) and more.sum() <= HELD_IN_PATTERN * self.n:
+                if not np.array_equal(free, self._zero_free):
+                    rows, cols = self.rows[self._keep], self.cols[self._keep]
+                    self._zeroed = np.nonzero((free[rows] * free[cols] == 0) & (rows != cols))[0]
+                    self._zero_free = free.copy()
+                out = data[self._keep]
+                out[self._zeroed] = 0.0
+                out[self._out_diag] = np.where(free > 0, out[self._out_diag], 1.0)
+                return self._out[0], self._out[1], out
+        keep = (free[self.rows] * free[self.cols] > 0) | (self.rows == self.cols)
+        self._keep = np.nonzero(keep)[0]
+        cols = self.cols[self._keep]
+        self._out = (np.concatenate([[0], np.cumsum(np.bincount(cols, minlength=self.n))]).astype(np.int64),
+                     self.indices[self._keep])
+        self._out_diag = np.searchsorted(self._keep, self.diag_pos)
+        self._held_key = (self._pattern_version,)
+        self._held_free = self._zero_free = free.copy()
+        self._zeroed = np.zeros(0, np.int64)
+        self.version += 1
         out = data[self._keep]
         out[self._out_diag] = np.where(free > 0, out[self._out_diag], 1.0)
         return self._out[0], self._out[1], out
+
+
+#: The share of the DOFs that may be held beyond those the assembler's returned pattern was made for
+#: before the pattern is made again without them (:meth:`SystemAssembler._held_out`).
+HELD_IN_PATTERN = 0.02
