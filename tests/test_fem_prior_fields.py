@@ -787,13 +787,25 @@ def test_a_model_runs_each_method_from_its_state_as_built(volunteer, monkeypatch
     monkeypatch.setattr(fm, "surface_phase", lambda model_, surf, max_steps, steps: (steps, False))
     pts60, _ = case_points(volunteer, 60.0, default_camera(), None)
     pts90, _ = case_points(volunteer, 90.0, default_camera(), None)
-    fresh = fm.prior_method("init", build_association_model(volunteer), volunteer, pts60)
-    model = build_association_model(volunteer)
+
+    def built():
+        # refreshes by a fixed rule, not the machine's load (see the test of a diverging surface phase); a
+        # setting, so the reset keeps it
+        m = build_association_model(volunteer)
+        m.solver.adaptive_refresh = m.solver.predict_refresh = False
+        return m
+
+    fresh = fm.prior_method("init", built(), volunteer, pts60)
+    model = built()
     fm.prior_method("init", model, volunteer, pts90)
     assert model.inverted_at_init > 0 or model.isolated_at_init > 0 or model.tethers is not None
+    assert not model.solver.predict_refresh
     again = fm.prior_method("init", model, volunteer, pts60)
-    np.testing.assert_allclose(again.grid_x, fresh.grid_x, atol=0.05)  # (53 mm apart without the reset)
-    assert abs(again.flexion_deg - fresh.flexion_deg) < 1e-3
+    # to the runs' agreement (the registrations' threaded sums; 0.23 mm at a node once, on a loaded two-core
+    # machine): without the reset the two are 53 mm apart
+    np.testing.assert_allclose(again.grid_x, fresh.grid_x, atol=0.25)
+    assert np.median(np.linalg.norm(again.grid_x - fresh.grid_x, axis=-1)) < 0.01
+    assert abs(again.flexion_deg - fresh.flexion_deg) < 0.05
 
     grid, anatomy = model.grid, model.anatomy
     model.solver.factor_backend = "superlu"  # a setting, not state: kept
