@@ -247,13 +247,12 @@ class DepthPointForces:
         the pattern each time the pairs did (a symbolic analysis each) and made the factors a quarter
         larger. The blocks kept couple only the nodes of the cell each vertex lies in."""
         corners, w, n = self._pairs
-        blocks = ((w ** 2)[:, :, None, None] * (n[:, None, :, None] * n[:, None, None, :])).reshape(-1, 9)
-        idx = corners.ravel()
-        per_vertex = np.column_stack([np.bincount(idx, weights=blocks[:, k], minlength=self.n_skin)
-                                      for k in range(9)])  # (S, 9): each vertex's 3 x 3 block
-        dof = 3 * np.arange(self.n_skin)
-        rows = (dof[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2).ravel()
-        cols = (dof[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1).ravel()
-        B = sp.csr_matrix((per_vertex.ravel(), (rows, cols)), shape=(3 * self.n_skin, 3 * self.n_skin))
+        vals = (w ** 2)[:, :, None, None] * (n[:, None, :, None] * n[:, None, None, :])  # (P, 3 corners, 3, 3)
+        dof = 3 * corners[:, :, None, None]
+        shape = vals.shape
+        rows = np.broadcast_to(dof + np.arange(3)[:, None], shape).ravel()
+        cols = np.broadcast_to(dof + np.arange(3), shape).ravel()
+        # each corner with itself only; repeated (vertex, i, j) entries are summed
+        B = sp.csr_matrix((vals.ravel(), (rows, cols)), shape=(3 * self.n_skin, 3 * self.n_skin))
         J3 = self.map.J3
         return (self.k_point * (J3.T @ B @ J3)).tocsr()

@@ -858,11 +858,11 @@ BONE_ANCHOR_K = 1.0e4
 
 
 #: Settling steps after the tibia's small move from the prior's initialised pose (its second correction and
-#: the slide apart, made together as one move: a few mm and degrees). One quasi-static step puts the bones' nodes where they go and the skin
-#: within a tenth of the move of where a second step puts it (at 60 deg, 1 deg and 1 mm: 0.24 of 3.0 mm,
-#: 95th percentiles). A second step changed the footprints by 0.001 mm (median of ten views of the honest
-#: benchmark's seed 1; 0.025 mm at most) and cost a refactorisation, 0.5 s of a case's 4.8 s with the bones
-#: carried by their own nodes.
+#: the slide apart, made together as one move: a few mm and degrees). One quasi-static step puts the bones'
+#: nodes where they go and the skin within a tenth of the move of where a second step puts it (at 60 deg,
+#: 1 deg and 1 mm: 0.24 of 3.0 mm, 95th percentiles). A second step changed the footprints by 0.001 mm
+#: (median of ten views of the honest benchmark's seed 1; 0.025 mm at most) and cost a refactorisation, 0.5 s
+#: of a case's 4.8 s with the bones carried by their own nodes.
 SMALL_MOVE_SETTLE = 0
 
 

@@ -51,7 +51,7 @@ class SystemAssembler:
         self._base_size = self.keys.size  # the pattern's size when last rebuilt from scratch
         self.version = 0  # of the returned pattern (the kept one less the held DOFs' rows and columns)
         self._pattern_version = 0
-        self._held_key = None
+        self._held_version = None  # the pattern version the held DOFs' pattern was made for
         self.pattern_seconds = 0.0  # time the last assemble() spent changing the pattern (one-off work)
         self._cache: dict[int, tuple] = {}  # slot -> (indptr, indices, lower mask, positions)
         self._geometry()
@@ -144,7 +144,7 @@ class SystemAssembler:
         returned pattern was made for (up to :data:`HELD_IN_PATTERN` of the DOFs: nodes left with no element
         when the reference is rebased) stay in it, their couplings zeroed, so that the pattern, and with it
         the factorisation's symbolic analysis, is kept."""
-        if self._held_key is not None and self._held_key[0] == self._pattern_version:
+        if self._held_version == self._pattern_version:
             was = self._held_free
             more = (free == 0) & (was > 0)
             if not np.any((free > 0) & (was == 0)) and more.sum() <= HELD_IN_PATTERN * self.n:
@@ -162,7 +162,7 @@ class SystemAssembler:
         self._out = (np.concatenate([[0], np.cumsum(np.bincount(cols, minlength=self.n))]).astype(np.int64),
                      self.indices[self._keep])
         self._out_diag = np.searchsorted(self._keep, self.diag_pos)
-        self._held_key = (self._pattern_version,)
+        self._held_version = self._pattern_version
         self._held_free = self._zero_free = free.copy()
         self._zeroed = np.zeros(0, np.int64)
         self.version += 1
