@@ -1,6 +1,9 @@
 """Method (iii)'s time per case on a machine shared with other work: the same cases of a case set
 (``scripts/build_case_set.py``) run with 0, 1 or 2 busy processes (single-threaded loops) holding the cores
-beside them, and with the default or a set number of OpenMP threads (``OMP_NUM_THREADS``). Each setting runs
+beside them, and with the libraries' default threads, a set number (``OMP_NUM_THREADS`` and the BLAS
+variables) or ``auto``, the ``knee`` command's rule (:func:`knee.app.threads.set_threads`: the cores the
+one-minute load average leaves free; the busy processes run until the load average shows them, up to
+``--settle`` seconds, before such a run starts; the count given is reported). Each setting runs
 in its own process (as a user's ``knee fem`` would), the settings alternated over ``--rounds`` so that a
 drift of the machine falls on all of them alike. Per setting: the median wall time per case, its CPU time
 (every thread's: what the case costs the machine, which the load does not change), the slowest case, each
@@ -10,8 +13,8 @@ grid (the answer should not depend on the threads or the load). ``--grids`` time
 grid choices side by side (``default`` the model's, ``knee`` sized by the knee, or N cells each way: as
 ``knee compare --cells-across``), each against the same baseline.
 
-    .venv/bin/python scripts/bench_loaded.py CASE_SET [--cases 10] [--loads 0,1,2] [--threads default,1]
-        [--grids default,knee] [--rounds 2] [--csv OUT.csv]
+    .venv/bin/python scripts/bench_loaded.py CASE_SET [--cases 10] [--loads 0,1,2] [--threads default,1,auto]
+        [--grids default,knee] [--rounds 2] [--settle 120] [--csv OUT.csv]
 
 The cases are ``--cases`` of the set's views at the paper's placement, evenly spaced over the set. About
 2-3 minutes per setting and round with 10 cases (12 runs with the defaults: 25-30 minutes).
@@ -38,10 +41,10 @@ def listed(item):
 
 
 def thread_count(text: str) -> str:
-    """``default`` (OMP_NUM_THREADS unset) or a count of at least 1."""
+    """``default`` (the thread variables unset), ``auto`` (the ``knee`` command's rule) or a count of at least 1."""
     from knee.app.console import at_least
 
-    return text if text == "default" else str(at_least(1)(text))
+    return text if text in ("default", "auto") else str(at_least(1)(text))
 
 
 def grid_choice(text: str) -> str:
@@ -74,10 +77,13 @@ def main() -> int:
     ap.add_argument("--loads", type=listed(at_least(0)), default="0,1,2",
                     help="busy processes beside the run, a list (default 0,1,2)")
     ap.add_argument("--threads", type=listed(thread_count), default="default,1",
-                    help="OpenMP threads, a list of counts or 'default' (OMP_NUM_THREADS unset; default: default,1)")
+                    help="threads, a list of counts, 'default' (the thread variables unset) or 'auto' (the knee "
+                         "command's rule by the load; default: default,1)")
     ap.add_argument("--grids", type=listed(grid_choice), default="default",
                     help="the model's grids, a list of 'default', 'knee' or N cells each way (default: default)")
     ap.add_argument("--rounds", type=at_least(1), default=2, help="times every setting runs (default 2)")
+    ap.add_argument("--settle", type=at_least(0), default=120,
+                    help="auto: seconds at most to wait for the load average to show the busy processes (120)")
     ap.add_argument("--csv", default=None, help="a row per case and run: setting, round, wall, CPU, footprints")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # internal: run these case ids, print JSON
     ap.add_argument("--worker-grid", default="default", help=argparse.SUPPRESS)  # internal: the worker's grid
@@ -95,8 +101,13 @@ def main() -> int:
 
 def worker(folder: str, ids: list[str], grid: str = "default") -> int:
     """Method (iii) on the named cases with the model's ``grid`` (:func:`grid_choice`), one JSON line each on
-    stdout (the model and its skin built before each case's clock, as ``knee compare`` times it)."""
+    stdout (the model and its skin built before each case's clock, as ``knee compare`` times it), with the
+    thread count the process was given."""
     from pathlib import Path
+
+    from knee.app.threads import THREAD_VARS
+
+    chosen = os.environ.get(THREAD_VARS[0], "default")
 
     from knee.app.experiments.case_set import iter_cases, run_case
 
@@ -104,7 +115,7 @@ def worker(folder: str, ids: list[str], grid: str = "default") -> int:
     for c, (anatomy, prior, T), _, _ in iter_cases(folder, select=lambda c: c["id"] in ids):
         row, _ = run_case(folder, c, "links", anatomy, prior, T, settings=grid_settings(grid))
         print(json.dumps({"case": c["id"], "wall": row.wall_seconds, "cpu": row.cpu_seconds,
-                          "footprints": row.footprints_mm, "failed": row.failed}), flush=True)
+                          "footprints": row.footprints_mm, "failed": row.failed, "threads": chosen}), flush=True)
     return 0
 
 
@@ -120,15 +131,24 @@ def pick(folder, count: int) -> list[str]:
     return [views[round(i * (len(views) - 1) / max(n - 1, 1))] for i in range(n)]
 
 
-def one_run(folder: str, ids: list[str], load: int, threads: str, grid: str = "default") -> list[dict]:
+def one_run(folder: str, ids: list[str], load: int, threads: str, grid: str = "default",
+            settle: float = 120.0) -> list[dict]:
     """The cases in a process of their own with ``load`` busy processes beside it and the model's ``grid``;
-    its JSON lines."""
-    env = dict(os.environ)
-    env.pop("OMP_NUM_THREADS", None)
-    if threads != "default":
-        env["OMP_NUM_THREADS"] = threads
+    its JSON lines. ``threads="auto"``: the busy processes run until the one-minute load average reaches
+    ``load - 0.5`` (``settle`` seconds at most), then the rule sets the threads the process starts with, as
+    the installed ``knee`` script does before anything loads."""
+    from knee.app.threads import THREAD_VARS, set_threads
+
+    env = {k: v for k, v in os.environ.items() if k not in THREAD_VARS}
+    if threads not in ("default", "auto"):
+        env.update({k: threads for k in THREAD_VARS})
     busy = [subprocess.Popen([sys.executable, "-c", BUSY]) for _ in range(load)]
     try:
+        t0 = time.perf_counter()
+        while threads == "auto" and os.getloadavg()[0] < load - 0.5 and time.perf_counter() - t0 < settle:
+            time.sleep(1.0)
+        if threads == "auto":
+            set_threads(env)
         out = subprocess.run([sys.executable, __file__, folder, "--worker", ",".join(ids), "--worker-grid", grid],
                              env=env, capture_output=True, text=True)
     finally:
@@ -158,21 +178,22 @@ def run(args, loads, threads, grids=("default",)) -> int:
             done = rnd * len(settings) + k
             print(f"[{done + 1}/{total}] round {rnd + 1}, {s[0]} busy, threads {s[1]}, grid {s[2]} "
                   f"({time.perf_counter() - t0:.0f} s so far)", file=sys.stderr, flush=True)
-            results[s] += [(rnd, line) for line in one_run(args.cases, ids, *s)]
+            results[s] += [(rnd, line) for line in one_run(args.cases, ids, *s, settle=args.settle)]
     first = grids[0]
     base = settings[0] if (0, "default", first) not in results else (0, "default", first)
     base_wall = statistics.median(line["wall"] for _, line in results[base])
     print(f"{len(ids)} views of {args.cases} at the paper's placement, {args.rounds} rounds; baseline: "
           f"{base[0]} busy, threads {base[1]}, grid {base[2]}")
-    print("| grid | busy processes | OpenMP threads | wall per case (s) | CPU (s) | slowest (s) | "
+    print("| grid | busy processes | threads | threads used | wall per case (s) | CPU (s) | slowest (s) | "
           "rounds' medians (s) | ratio to the baseline |")
-    print("|---|---:|---|---:|---:|---:|---|---:|")
+    print("|---|---:|---|---|---:|---:|---:|---|---:|")
     for s, rows in results.items():
         wall = statistics.median(line["wall"] for _, line in rows)
         cpu = statistics.median(line["cpu"] for _, line in rows)
         per_round = " / ".join(f"{statistics.median(line['wall'] for r, line in rows if r == k):.2f}"
                                for k in range(args.rounds))
-        print(f"| {s[2]} | {s[0]} | {s[1]} | {wall:.2f} | {cpu:.2f} | {max(line['wall'] for _, line in rows):.2f} | "
+        used = " / ".join(sorted({str(line.get("threads", "?")) for _, line in rows}))
+        print(f"| {s[2]} | {s[0]} | {s[1]} | {used} | {wall:.2f} | {cpu:.2f} | {max(line['wall'] for _, line in rows):.2f} | "
               f"{per_round} | {wall / base_wall:.2f} |")
     by_case = {}  # (grid, case) -> footprints over the runs: the load and the threads should not change them
     for s, rows in results.items():

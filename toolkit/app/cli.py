@@ -34,6 +34,7 @@ import os
 import sys
 
 from knee.app.console import at_least, error, take_terminations_as_interrupts
+from knee.app.threads import set_threads
 from knee.foundations.errors import (
     EXIT_BAD_INPUT,
     EXIT_INTERNAL,
@@ -258,7 +259,10 @@ def entry() -> None:
     (SIGTERM: ``kill``, a scheduler's time limit) is taken as Ctrl-C, so that it too removes every partial
     output. After either, when the partial outputs have been removed and the workers stopped, the process
     leaves at once: the interpreter's own teardown of the loaded numeric libraries takes about a second,
-    which a user who pressed Ctrl-C should not wait for."""
+    which a user who pressed Ctrl-C should not wait for. The BLAS libraries' threads are set by the
+    machine's load before the command imports them (:func:`knee.app.threads.set_threads`; a count the user
+    set is kept; the installed script, :func:`knee.app.launch.entry`, sets them before NumPy loads too)."""
+    set_threads()
     take_terminations_as_interrupts()
     code = main()
     if code == EXIT_INTERRUPTED:

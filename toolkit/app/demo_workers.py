@@ -10,9 +10,10 @@ import multiprocessing as mp
 import os
 import signal
 
+from knee.app.threads import THREAD_VARS
+
 #: The demo's methods: the paper's (i), the prior with its links (iii), the mechanism alone (iv).
 DEMO_METHODS = ("paper", "links", "kinematics")
-_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 def call(module: str, function: str, *args):
@@ -42,8 +43,8 @@ def start_workers(flexion_deg: float, seed: int, perturb: float):
     :data:`DEMO_METHODS`; returns (pool, {future: method}). The caller shuts the pool down."""
     ctx = mp.get_context("spawn")  # no fork of a process that holds recording threads
     # one BLAS/OpenMP thread per worker: two workers on two cores, not four threads fighting over them
-    saved = {k: os.environ.get(k) for k in _THREAD_VARS}
-    os.environ.update({k: "1" for k in _THREAD_VARS})
+    saved = {k: os.environ.get(k) for k in THREAD_VARS}
+    os.environ.update({k: "1" for k in THREAD_VARS})
     try:
         pool = cf.ProcessPoolExecutor(max_workers=2, mp_context=ctx, initializer=_ignore_interrupt)
         # the workers are spawned by these submissions, with the environment set above
