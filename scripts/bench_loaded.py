@@ -105,12 +105,10 @@ def worker(folder: str, ids: list[str], grid: str = "default") -> int:
     thread count the process was given."""
     from pathlib import Path
 
+    from knee.app.experiments.case_set import iter_cases, run_case
     from knee.app.threads import THREAD_VARS
 
-    chosen = os.environ.get(THREAD_VARS[0], "default")
-
-    from knee.app.experiments.case_set import iter_cases, run_case
-
+    chosen = os.environ.get(THREAD_VARS[0], "default")  # what the parent gave this process
     folder = Path(folder)
     for c, (anatomy, prior, T), _, _ in iter_cases(folder, select=lambda c: c["id"] in ids):
         row, _ = run_case(folder, c, "links", anatomy, prior, T, settings=grid_settings(grid))

@@ -4,8 +4,8 @@ CHOLMOD's factorisations (CVXOPT's OpenBLAS), NumPy's and SciPy's OpenBLAS, and 
 thread counts from the environment when they are loaded. Their threads wait for work by spinning, so on a
 machine whose cores other work holds they cost time, and on this toolkit's problems they gain little even
 on an idle machine. Measured on method (iii)'s cases on two cores (BENCHMARKS.md, "The BLAS threads by the
-machine's load"): with nothing else running, one BLAS thread takes the same wall time as two and 20 % less
-CPU; beside busy processes it is faster. (Open3D's registrations and distance queries run on TBB, which
+machine's load"): with nothing else running, one BLAS thread takes the same wall time as two and 10 % less
+CPU; beside one or two busy processes it takes 7 % and 6 % less wall time. (Open3D's registrations and distance queries run on TBB, which
 these variables do not bound; bounded to one thread, they took a third longer on an idle machine and gained
 nothing beside busy processes, so they keep their own default.)
 
