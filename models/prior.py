@@ -818,6 +818,10 @@ class TibiaCorrection:
     rms_before: float
     rms_after: float
     note: str | None = None
+    #: The Laplace covariance (6, 6) of ``xi`` at the solution (rad^2, mm^2; the rotation vector first): the
+    #: inverse of the fit's normal matrix there, the points' term with the sd they were weighed by and the
+    #: prior's. None where no correction was made.
+    cov: np.ndarray | None = None
 
     @property
     def applied(self) -> bool:
@@ -940,6 +944,16 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
         c, nrm = shank.closest(local)
         return float(np.sqrt(np.mean(np.einsum("ij,ij->i", local - c, nrm) ** 2)))
 
+    def posterior(xi, sel, sd):
+        """The Laplace covariance (6, 6) of ``xi`` at the solution: the inverse of the Gauss-Newton's normal
+        matrix there (the points' term and the prior's)."""
+        D = small_pose(xi)
+        p = transform_points(invert_poses(T_prior @ D), pts[sel])
+        _, nrm = shank.closest(p)
+        J = np.hstack([-np.cross(p, nrm) @ right_jacobian(xi[:3]), -nrm @ D[:3, :3].T])
+        return np.linalg.inv(J.T @ J / sd ** 2 + np.diag(prior_w))
+
+    sd_used = point_sd_mm
     xi, sel, n, before = fit(np.zeros(6), point_sd_mm, wide_iterations)
     if adapt and n >= MIN_CORRECTION_POINTS:
         # the points' own sd, as far as their residuals show it, in place of the assumed one where smaller; the
@@ -948,7 +962,7 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
         if sd < POINT_SD_MM:
             xi2, sel2, n2, _ = fit(xi, effective_point_sd(skin.width, sd), 0)
             if n2 >= MIN_CORRECTION_POINTS:
-                xi, sel, n = xi2, sel2, n2
+                xi, sel, n, sd_used = xi2, sel2, n2, effective_point_sd(skin.width, sd)
     if n < MIN_CORRECTION_POINTS:
         return TibiaCorrection(T_prior, np.zeros(6), n, float("nan"), float("nan"),
                                note=f"the shank is seen by {n} depth points (at least {MIN_CORRECTION_POINTS} "
@@ -956,4 +970,4 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
                                     "skin fit's alone and can be far off (on the honest benchmark's views that say so, "
                                     f"{UNSEEN_FLEXION_ERROR_DEG[0]:.0f} deg median and up to "
                                     f"{UNSEEN_FLEXION_ERROR_DEG[1]:.0f})")
-    return TibiaCorrection(T_prior, xi, n, before, residual_rms(xi, sel))
+    return TibiaCorrection(T_prior, xi, n, before, residual_rms(xi, sel), cov=posterior(xi, sel, sd_used))

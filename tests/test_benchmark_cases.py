@@ -563,6 +563,29 @@ def test_flexion_target_split_by_what_the_camera_saw():
     assert seen.split("(target")[1].startswith(": all): met") and unseen.endswith(": met")
 
 
+def test_flexion_sd_line_counts_the_errors_within_their_own_standard_errors():
+    """The case set's report says how many views' flexion errors lie within one and two of their own standard
+    errors, over the views that see the shank and have one (a view the camera hardly sees, or a method without
+    the figure, left out; none at all: no line)."""
+    from knee.app.experiments.case_set import CaseRow
+    from knee.app.reports.case_set import flexion_sd_calibration
+    from knee.models.prior import MIN_SEEN_SHANK
+
+    def row(err, sd, shank=MIN_SEEN_SHANK, mm=1.0):
+        return CaseRow("links", "paper", 40.0, flexion_estimated_deg=40.0 + err, flexion_sd_deg=sd,
+                       shank_points_true=shank, mismatch_mm=mm)
+
+    rows = [row(0.5, 1.0), row(-1.5, 1.0), row(3.0, 1.0, mm=2.0), row(-0.2, 2.0), row(9.0, 1.0, shank=0),
+            row(0.1, float("nan"))]
+    (line,) = flexion_sd_calibration(rows)
+    assert line.startswith("(iii) the flexion's own standard error: median 1.00 deg over 4 views")
+    assert "within one of it in 2 (50 %" in line and "within two in 3 (75 %" in line
+    # by the skin mismatch: at 1 mm 2 of 3 within one and all within two, at 2 mm the one view 3 sd off
+    assert line.endswith("; at 1 / 2 mm skin mismatch 67 / 0 % within one, 100 / 0 % within two")
+    assert flexion_sd_calibration(rows[4:]) == []
+    assert "skin mismatch" not in flexion_sd_calibration(rows[:2])[0]  # one level: no split
+
+
 def test_estimate_fit_line_counts_the_views_fitted_poorly():
     """The case set's report says how well the flexion estimate's posed skin fitted each view and names the
     views over the poor-fit threshold, worst first; rows without the figure (a failed estimate, a table written
@@ -1479,6 +1502,7 @@ def test_compare_tables_read_back_and_pool_across_case_sets(tmp_path, capsys, ru
     """A table :func:`write_csv` wrote reads back as the same rows (a failed run's empty figures as their
     defaults), and the pooling script's targets over two tables are the medians over the union, each set's
     (iii) compared with (iv) on its own case even where the two sets share case ids."""
+    import csv
     import statistics
 
     from knee.app.experiments.case_set import CaseRow
@@ -1489,7 +1513,8 @@ def test_compare_tables_read_back_and_pool_across_case_sets(tmp_path, capsys, ru
 
     def row(method, case, fp, mm=1.0, flex=30.0):
         return CaseRow(method, "paper", 30.0, flex, fp, fp, fp + 0.5, fp + 0.25, 12, 3.5, True, 1.5, 0.75, "",
-                       "", case, "phantom", "measured", mm, 0.75, 500, 2.0 * fp)
+                       "", flexion_sd_deg=1.25, case=case, anatomy="phantom", family="measured", mismatch_mm=mm,
+                       registration_inliers=0.75, shank_points_true=500, cpu_seconds=2.0 * fp)
 
     a = [row("links", "c1", 1.5), row("kinematics", "c1", 4.0), row("links", "c2", 2.5),
          row("kinematics", "c2", 2.0), CaseRow("paper", "paper", 30.0, failed="diverged", case="c1",
@@ -1504,6 +1529,15 @@ def test_compare_tables_read_back_and_pool_across_case_sets(tmp_path, capsys, ru
     write_csv(a, tmp_path / "old.csv", extra=extra[:-1])
     old = read_csv(tmp_path / "old.csv", CaseRow)
     assert old[0].cpu_seconds != old[0].cpu_seconds and old[0].femur_footprints_mm == 1.5
+    # and one written before the flexion's standard error was, with that unknown
+    with open(tmp_path / "a.csv", newline="") as fh:
+        table = list(csv.DictReader(fh))
+    with open(tmp_path / "older.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=[k for k in table[0] if k != "flexion_sd_deg"], extrasaction="ignore")
+        w.writeheader()
+        w.writerows(table)
+    older = read_csv(tmp_path / "older.csv", CaseRow)
+    assert older[0].flexion_sd_deg != older[0].flexion_sd_deg and back[0].flexion_sd_deg == 1.25
     write_csv(a, tmp_path / "bad.csv", extra=extra[1:])
     with pytest.raises(KneeInputError, match="missing case"):
         read_csv(tmp_path / "bad.csv", CaseRow)
@@ -1514,6 +1548,8 @@ def test_compare_tables_read_back_and_pool_across_case_sets(tmp_path, capsys, ru
     # case ids mixed, the first c1 would meet the second's (iv) and lose: 0 of 3)
     assert "lower than (iv) in 33 % of 3 cases" in pooled
     assert "2 of 3 within 2 deg" in pooled  # the second set's 3 deg miss
+    # ... which lies 2.4 of its standard errors off
+    assert "standard error: median 1.25 deg over 3 views" in pooled and "within two in 2 (67 %" in pooled
     assert f"(CPU time {statistics.median([3.0, 5.0, 7.0]):.1f} s, every thread's)" in pooled  # (iii)'s, 2 x its fp
     png = tmp_path / "pooled.png"
     assert run_script("pool_case_sets", [tmp_path / "a.csv", tmp_path / "b.csv", "--plot", png]) == 0

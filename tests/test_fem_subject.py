@@ -72,6 +72,7 @@ def test_the_bones_of_a_subject_in_the_cameras_frame(case):
         assert (out / f).stat().st_size > 0, f
     r = json.loads((out / "result.json").read_text())
     assert abs(r["flexion_deg"] - math.degrees(case["tf"][0])) < 2.0
+    assert 0.3 < r["flexion_sd_deg"] < 3.0  # (iii)'s standard error from its fits (about a degree here)
     # the initial pose was turned 20 deg about the camera (about 150 mm at the knee), the result near the truth:
     # its offset from the result is about that, and no warning
     assert r["initial_pose_off"]["deg"] == pytest.approx(20.0, abs=3.0) and r["initial_pose_off"]["mm"] > 100.0
@@ -262,6 +263,9 @@ def test_compare_on_a_subject_with_a_measured_motion(case, tmp_path):
     for r in rows:
         assert abs(float(r["flexion_estimated_deg"]) - float(r["flexion_true_deg"])) < 3.0
         assert 0.1 < float(r["femur_footprints_mm"]) < 10.0
+    # the flexion's standard error: (iii)'s from its fits (about a degree on a view of the knee's side), none
+    # for the mechanism alone
+    assert 0.3 < float(rows[0]["flexion_sd_deg"]) < 3.0 and rows[1]["flexion_sd_deg"] == "nan"
     assert (out / "compare.png").stat().st_size > 0 and "Subject" in (out / "compare.md").read_text()
     assert_clean_error(run("compare", case["dir"], "--prior", case["tmp"] / "prior.toml", "--out", tmp_path / "x"),
                        "--truth-motion")

@@ -275,6 +275,42 @@ def test_the_tibia_correction_recovers_what_the_shank_shows(volunteer):
     assert np.linalg.norm(stiff.rotation_deg) < 0.1 * np.linalg.norm(c.rotation_deg)
 
 
+def test_the_tibia_corrections_covariance_is_the_spread_of_its_answers(volunteer):
+    """The correction's Laplace covariance (:attr:`TibiaCorrection.cov`) against Monte Carlo: points on a shank
+    that is not round (so that all six components show), one per 4 mm voxel and away from the voxels' faces
+    (the correction thins to such voxels: points that shared one would average their noise away), each moved
+    along the skin's normal by independent noise of 0.3 mm, the correction made with that sd in 40 draws. The
+    spread of its six components is the covariance's (each sd within 30 %: an estimate from 40 draws is within
+    about 11 % of its own). With a prior far more confident than the points the covariance is the prior's."""
+    from trimesh.sample import sample_surface
+
+    from knee.models.prior import VOXEL_MM, correct_tibia, small_pose
+
+    ph = _FlatShank(build_phantom(volunteer.params))
+    sk = SkinModel(volunteer, ph)
+    alpha = math.radians(60.0)
+    T = joint_to_pose(volunteer.motion_at(np.array([alpha]))[0][0])
+    shank = ph.skin_parts(np.eye(4))[1][0]
+    p, f = sample_surface(shank, 60000, seed=5)
+    below = p[:, 1] < -40.0
+    p, n = transform_points(T, p[below]), shank.face_normals[f[below]] @ T[:3, :3].T
+    frac = p / VOXEL_MM - np.floor(p / VOXEL_MM)
+    mid = np.all((frac > 0.3) & (frac < 0.7), axis=1)  # 1.2 mm from every face of its voxel: 4 sd of the noise
+    _, first = np.unique(np.floor(p[mid] / VOXEL_MM).astype(int), axis=0, return_index=True)
+    p, n = p[mid][first], n[mid][first]
+    assert len(p) > 300
+    rng = np.random.default_rng(6)
+    runs = [correct_tibia(sk, p + n * rng.normal(0.0, 0.3, (len(p), 1)), alpha, sigma_mm=100.0, sigma_deg=90.0,
+                          sigma_axial_deg=90.0, point_sd_mm=0.3) for _ in range(40)]
+    assert all(c.applied and c.points == runs[0].points for c in runs)
+    sd = np.std([c.xi for c in runs], axis=0, ddof=1)
+    np.testing.assert_allclose(sd, np.sqrt(np.diag(runs[0].cov)), rtol=0.3)
+    stiff = correct_tibia(sk, p, alpha, sigma_mm=0.01, sigma_deg=0.001, sigma_axial_deg=0.001, point_sd_mm=30.0)
+    np.testing.assert_allclose(np.sqrt(np.diag(stiff.cov)), [math.radians(0.001)] * 3 + [0.01] * 3, rtol=0.02)
+    # no correction, no covariance
+    assert correct_tibia(sk, p[:50], alpha).cov is None
+
+
 class _FlatShank:
     """A phantom whose shank's skin is flattened front to back (its cross-section an ellipse, as a real
     shank's is not a circle): the same phantom otherwise."""

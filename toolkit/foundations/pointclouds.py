@@ -446,6 +446,29 @@ def icp_held_to_surface(source_points, surface, free=(True,) * 6, pivot=(0.0, 0.
     return _held_gauss_newton(source_points, pair, free, pivot, init, iterations, tolerance)
 
 
+def surface_fit_covariance(points, surface, point_sd_mm: float, pivot=(0.0, 0.0, 0.0),
+                           max_distance: float = 20.0) -> tuple[np.ndarray, int]:
+    """The covariance (6, 6) of a rigid point-to-plane fit of ``points`` (P, 3) onto ``surface`` at its
+    solution (the points already moved there), each point's distance to the surface's plane erring
+    independently with sd ``point_sd_mm``: the Laplace approximation ``sd^2 (A^T A)^-1``, where each row
+    of ``A`` is how a small rotation about ``pivot`` (a rotation vector, rad: the first three) and a
+    translation (mm: the last three) move that point's point-to-plane residual (what
+    :func:`icp_held_to_surface`'s Gauss-Newton steps solve). The points within ``max_distance`` of the
+    surface count; also returned. Directions the points do not fix (a cylinder's axis) come out with a
+    large variance, not an error: the pseudo-inverse leaves them at zero, so they are filled with
+    ``1e12`` on the diagonal."""
+    p = np.asarray(points, float)
+    q, n = surface.closest_on_faces(p)
+    near = np.linalg.norm(p - q, axis=1) < max_distance
+    A = np.hstack([np.cross(p[near] - np.asarray(pivot, float), n[near]), n[near]])
+    w, V = np.linalg.eigh(A.T @ A)
+    fixed = w > 1e-9 * max(float(w.max()), 1e-300)
+    cov = (V[:, fixed] / w[fixed]) @ V[:, fixed].T * point_sd_mm ** 2
+    if not fixed.all():
+        cov += 1e12 * (V[:, ~fixed] @ V[:, ~fixed].T)
+    return cov, int(near.sum())
+
+
 def _held_gauss_newton(source_points, pair, free, pivot, init, iterations: int,
                        tolerance: float) -> tuple[np.ndarray, float]:
     """The Gauss-Newton of :func:`icp_held` with the pairing ``pair(points) -> (near mask, targets, normals)``

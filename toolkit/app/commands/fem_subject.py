@@ -10,8 +10,8 @@ one, by a global search over rotations as the camera would see the skin, then re
 Outputs in OUT (written only when the run succeeds; nothing that looks like a result otherwise):
 
 - ``result.json``: the femur's and the tibia's poses as 4x4 matrices (mm) taking CT coordinates to the
-  camera's frame (what an AR overlay needs), the flexion and the TF joint coordinates, the fit's quality
-  and the warnings;
+  camera's frame (what an AR overlay needs), the flexion (with methods ii/iii its standard error,
+  ``flexion_sd_deg``) and the TF joint coordinates, the fit's quality and the warnings;
 - ``femur.stl``, ``tibia.stl``: the CT bones posed in the camera's frame;
 - ``fem.rrd``: the points, the reconstructed skin and bones (camera frame);
 - ``overlay.png``: the bones' silhouettes over the depth image (or over the points seen from the camera).
@@ -236,6 +236,8 @@ def run(args) -> int:
     result = {
         "subject": subject.name, "side": subject.side, "method": recon.method, "prior": str(args.prior),
         "flexion_deg": math.degrees(tf[0]),
+        # methods ii/iii: the flexion's standard error from the fits that set it (None for the others)
+        "flexion_sd_deg": recon.flexion_sd_deg if math.isfinite(recon.flexion_sd_deg) else None,
         "tf_joint_coordinates": {name: (math.degrees(v) if k < 3 else float(v))
                                  for k, (name, v) in enumerate(zip(JOINT_COORDINATES, tf))},
         "units": {"angles": "deg", "translations": "mm", "poses": "4x4, mm: CT coordinates to the camera's frame"},
@@ -261,7 +263,10 @@ def run(args) -> int:
         skin = (transform_points(S @ T_cam_world, recon.locate("femur", model.skin_vertices)),
                 faces[:, ::-1] if subject.side == "left" else faces)
     _write_outputs(out, meshes, skin, points_cam, result, depth, K, flying)
-    print(f"{subject.name}: flexion {result['flexion_deg']:.1f} deg ({recon.method}), {recon.steps} steps in "
+    sd = result["flexion_sd_deg"]
+    print(f"{subject.name}: flexion {result['flexion_deg']:.1f} deg"
+          + (f" (standard error {sd:.1f} deg)" if sd is not None else "")
+          + f" ({recon.method}), {recon.steps} steps in "
           f"{seconds:.1f} s; registration: {100 * rough.inliers:.0f} % of the points within 5 mm of the skin")
     for w in notes:
         print(f"warning: {w}")

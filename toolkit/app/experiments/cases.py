@@ -292,6 +292,9 @@ class CompareRow:
     tibia_correction_mm: float = float("nan")
     notes: str = ""
     failed: str = ""
+    #: methods ii/iii: the flexion's standard error from the fits that set it (deg;
+    #: :func:`knee.models.fem.methods.flexion_sd_deg`), NaN otherwise
+    flexion_sd_deg: float = float("nan")
 
     @property
     def footprints_mm(self) -> float:
@@ -317,7 +320,7 @@ def reconstruction_row(method: str, camera_name: str, flexion_deg: float, rec: R
     return row(method, camera_name, float(flexion_deg), rec.flexion_deg, e.femur.footprints.mean,
                e.tibia.footprints.mean, e.femur.epiphysis.mean, e.tibia.epiphysis.mean, rec.steps, wall_seconds,
                rec.converged, _norm_or_nan(rec.tibia_correction, "deg"), _norm_or_nan(rec.tibia_correction, "mm"),
-               "; ".join(rec.notes), **extra)
+               "; ".join(rec.notes), flexion_sd_deg=rec.flexion_sd_deg, **extra)
 
 
 def result_row(camera_name: str, flexion_deg: float, r: MethodResult) -> CompareRow:

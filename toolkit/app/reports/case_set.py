@@ -142,6 +142,7 @@ def targets(rows, floors=()) -> list[str]:
         lines.append(f"(iii) median footprint error over all cases {m:.2f} mm" + interval_clause(ok) + " against the paper's reported "
                      f"{paper:.2f} mm: {'lower' if m < paper else 'NOT lower'}")
         lines += flexion_targets(ok)
+        lines += flexion_sd_calibration(ok)
         w = _median(r.wall_seconds for r in ok)
         cpu = [r.cpu_seconds for r in ok if math.isfinite(r.cpu_seconds)]
         lines.append(f"(iii) median time {w:.1f} s per case including the registration"
@@ -204,6 +205,32 @@ def flexion_targets(rows) -> list[str]:
                      f"{_median(err[id(r)] for r in unseen):.2f} deg; warned in {warned} of {len(unseen)} "
                      f"(target: all): {'met' if warned == len(unseen) else 'NOT met'}")
     return lines
+
+
+def flexion_sd_calibration(rows, label: str = "(iii)") -> list[str]:
+    """How well the flexion's own standard error (the rows' ``flexion_sd_deg``, from the fits that set it)
+    tells each view's error, over the views that see the shank and have one: its median, and how many
+    errors lie within one and two of their own standard errors (about 68 and 95 % where it tells them
+    right; fewer: it claims too much). A line starting with ``label``, or none where no row has it."""
+    sel = [r for r in rows if r.shank_points_true >= MIN_SEEN_SHANK and math.isfinite(r.flexion_sd_deg)]
+    if not sel:
+        return []
+    z = {id(r): abs(r.flexion_estimated_deg - r.flexion_true_deg) / r.flexion_sd_deg for r in sel}
+
+    def within(rs, k):
+        return sum(z[id(r)] <= k for r in rs)
+
+    line = (f"{label} the flexion's own standard error: median {_median(r.flexion_sd_deg for r in sel):.2f} deg over "
+            f"{len(sel)} views that see the shank; the error within one of it in {within(sel, 1)} "
+            f"({100 * within(sel, 1) / len(sel):.0f} %, 68 % if it is right), within two in "
+            f"{within(sel, 2)} ({100 * within(sel, 2) / len(sel):.0f} %, 95 %)")
+    levels = sorted({r.mismatch_mm for r in sel if math.isfinite(getattr(r, "mismatch_mm", math.nan))})
+    if len(levels) > 1:  # it does not know how far the skin is off: by the skin mismatch
+        by = [[r for r in sel if getattr(r, "mismatch_mm", math.nan) == v] for v in levels]
+        line += (f"; at {' / '.join(f'{v:g}' for v in levels)} mm skin mismatch "
+                 f"{' / '.join(f'{100 * within(rs, 1) / len(rs):.0f}' for rs in by)} % within one, "
+                 f"{' / '.join(f'{100 * within(rs, 2) / len(rs):.0f}' for rs in by)} % within two")
+    return [line]
 
 
 def markdown(rows, methods, title: str, floors=()) -> str:

@@ -35,7 +35,7 @@ METHOD_COLOURS = {"paper": (220, 60, 60), "init": (240, 170, 40), "links": (40, 
                   "kinematics": (70, 120, 230)}
 COLUMNS = ["camera", "flexion_true_deg", "method", "flexion_estimated_deg", "femur_footprints_mm",
            "tibia_footprints_mm", "femur_epiphysis_mm", "tibia_epiphysis_mm", "steps", "wall_seconds", "converged",
-           "tibia_correction_deg", "tibia_correction_mm", "notes", "failed"]
+           "tibia_correction_deg", "tibia_correction_mm", "notes", "failed", "flexion_sd_deg"]
 NAN = float("nan")
 
 
@@ -96,7 +96,7 @@ def write_csv(rows: list[CompareRow], path, extra=()) -> None:
 
 
 #: Columns a table written before they were added may lack: their rows take the field's default.
-LATER_COLUMNS = ("cpu_seconds", "estimate_rms_mm")
+LATER_COLUMNS = ("cpu_seconds", "estimate_rms_mm", "flexion_sd_deg")
 
 
 def read_csv(path, row_type=CompareRow) -> list:
