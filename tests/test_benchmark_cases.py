@@ -584,6 +584,11 @@ def test_flexion_sd_line_counts_the_errors_within_their_own_standard_errors():
     assert line.endswith("; at 1 / 2 mm skin mismatch 67 / 0 % within one, 100 / 0 % within two")
     assert flexion_sd_calibration(rows[4:]) == []
     assert "skin mismatch" not in flexion_sd_calibration(rows[:2])[0]  # one level: no split
+    # the tables' runs give each estimate with its standard error where the method has one
+    from knee.app.reports.case_set import markdown
+
+    table = markdown(rows[:2] + rows[5:], ["links"], "t")
+    assert "| 40.5 ± 1.0 |" in table and "| 38.5 ± 1.0 |" in table and "| 40.1 |" in table
 
 
 def test_estimate_fit_line_counts_the_views_fitted_poorly():

@@ -21,7 +21,7 @@ import numpy as np  # noqa: E402
 import rerun as rr  # noqa: E402
 
 from knee.app.experiments.skin_floor import placement_spread  # noqa: E402
-from knee.app.reports.compare import METHOD_COLOURS, compare_blueprint  # noqa: E402
+from knee.app.reports.compare import METHOD_COLOURS, compare_blueprint, flexion_cell  # noqa: E402
 from knee.foundations import recording as R  # noqa: E402
 from knee.foundations.pointclouds import voxel_downsample  # noqa: E402
 from knee.models.prior import MIN_SEEN_SHANK, POOR_FIT_RMS_MM, VOXEL_MM  # noqa: E402
@@ -253,7 +253,7 @@ def markdown(rows, methods, title: str, floors=()) -> str:
                        f"{_median(abs(r.flexion_estimated_deg - r.flexion_true_deg) for r in ok):.2f} | "
                        f"{_median(r.wall_seconds for r in ok):.1f} |")
     out += ["", "## Targets", ""] + [f"- {line}" for line in targets(rows, floors)]
-    out += ["", "## Every run", "", "| case | method | true flexion | estimate | femur fp | tibia fp | femur epi | "
+    out += ["", "## Every run", "", "| case | method | true flexion | estimate ± its standard error | femur fp | tibia fp | femur epi | "
             "tibia epi | time (s) | notes |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
         if r.failed:
@@ -261,7 +261,7 @@ def markdown(rows, methods, title: str, floors=()) -> str:
                        f"| | | | | | |")
             continue
         out.append(f"| {r.case} | {NAMES.get(r.method, r.method)} | {r.flexion_true_deg:.1f} | "
-                   f"{r.flexion_estimated_deg:.1f} | {r.femur_footprints_mm:.2f} | {r.tibia_footprints_mm:.2f} | "
+                   f"{flexion_cell(r)} | {r.femur_footprints_mm:.2f} | {r.tibia_footprints_mm:.2f} | "
                    f"{r.femur_epiphysis_mm:.2f} | {r.tibia_epiphysis_mm:.2f} | {r.wall_seconds:.1f} | "
                    f"{r.notes[:160].replace('|', '/')} |")
     return "\n".join(out) + "\n"

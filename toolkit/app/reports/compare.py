@@ -137,13 +137,19 @@ def floor_markdown(floor: list[FloorRow]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def flexion_cell(r: CompareRow) -> str:
+    """A run's estimated flexion for a table, with its standard error where the method gives one."""
+    sd = getattr(r, "flexion_sd_deg", NAN)
+    return f"{r.flexion_estimated_deg:.1f}" + (f" ± {sd:.1f}" if np.isfinite(sd) else "")
+
+
 def markdown(rows: list[CompareRow], methods, title: str) -> str:
     """The comparison table, the medians per method and the checks of :func:`targets_check`."""
     summ = summary(rows, methods)
     lines = [f"# {title}", "",
              "Target point errors: mean distance (mm) between the estimated and the true bone surface points, "
              "ACL/PCL footprints and the whole epiphysis, per bone.", "",
-             "| camera | flexion | method | estimate (deg) | femur footprints | tibia footprints | femur epiphysis | "
+             "| camera | flexion | method | estimate ± its standard error (deg) | femur footprints | tibia footprints | femur epiphysis | "
              "tibia epiphysis | steps | wall (s) | converged | tibia corrected (deg / mm) | notes |",
              "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---|"]
     for r in rows:
@@ -152,7 +158,7 @@ def markdown(rows: list[CompareRow], methods, title: str) -> str:
             continue
         deg, mm = r.tibia_correction_deg, r.tibia_correction_mm
         corr = "" if not np.isfinite(deg) else f"{deg:.1f} / {mm:.1f}"
-        lines.append(f"| {r.camera} | {r.flexion_true_deg:g} | {r.method} | {r.flexion_estimated_deg:.1f} | "
+        lines.append(f"| {r.camera} | {r.flexion_true_deg:g} | {r.method} | {flexion_cell(r)} | "
                      f"{r.femur_footprints_mm:.2f} | {r.tibia_footprints_mm:.2f} | {r.femur_epiphysis_mm:.2f} | "
                      f"{r.tibia_epiphysis_mm:.2f} | {r.steps} | {r.wall_seconds:.1f} | {r.converged} | "
                      f"{corr} | {r.notes} |")
