@@ -42,6 +42,7 @@ def main(flexion_deg: float = 60.0) -> dict:
         "points": int(len(points)),
         "flexion_estimated_deg": round(recon.flexion_deg, 2),
         "flexion_error_deg": round(recon.flexion_deg - math.degrees(truth_tf[0]), 2),
+        "flexion_sd_deg": round(recon.flexion_sd_deg, 2),          # its standard error, from the method's fits
         "footprints_mm": round(errors.footprints_mm, 3),
         "epiphysis_mm": round(errors.epiphysis_mm, 3),
         "mechanism_alone_footprints_mm": round(evaluate(model, prior, alone, truth_tf).footprints_mm, 3),
