@@ -454,9 +454,8 @@ def surface_fit_covariance(points, surface, point_sd_mm: float, pivot=(0.0, 0.0,
     of ``A`` is how a small rotation about ``pivot`` (a rotation vector, rad: the first three) and a
     translation (mm: the last three) move that point's point-to-plane residual (what
     :func:`icp_held_to_surface`'s Gauss-Newton steps solve). The points within ``max_distance`` of the
-    surface count; also returned. Directions the points do not fix (a cylinder's axis) come out with a
-    large variance, not an error: the pseudo-inverse leaves them at zero, so they are filled with
-    ``1e12`` on the diagonal."""
+    surface count; also returned. Directions the points do not fix at all (the slide along a cylinder's
+    axis) come out with a variance of ``1e12`` along them rather than an error."""
     p = np.asarray(points, float)
     q, n = surface.closest_on_faces(p)
     near = np.linalg.norm(p - q, axis=1) < max_distance

@@ -99,6 +99,8 @@ def _sweep_and_report(args, out_dir: Path, shown: Path, fem) -> None:
     for r in out.rows:
         print(f"{labels[r.method]:44s} {r.flexion_estimated_deg:7.1f}° {r.footprints_mm:8.2f} mm "
               f"{r.epiphysis_mm:7.2f} mm {r.steps:6d} {r.wall_seconds:9.1f}")
+        if math.isfinite(r.flexion_sd_deg):
+            print(f"  the flexion's standard error from the method's fits: {r.flexion_sd_deg:.1f} deg")
         if math.isfinite(r.tibia_correction_deg):
             print(f"  the tibia's pose corrected from the shank's depth points: {r.tibia_correction_deg:.1f} deg, "
                   f"{r.tibia_correction_mm:.1f} mm off the prior's path")
