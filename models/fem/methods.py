@@ -528,7 +528,8 @@ def flexion_sd_deg(model: AssociationModel, points_placed, tibia: TibiaCorrectio
     BENCHMARKS.md, "The flexion's standard error"): 1.30 deg, median (0.76-1.90); the error within one of it
     in 63 % of the views and within two in 88 % (68 and 95 % were it exact): about right at 1 mm of skin
     mismatch (66 and 91 %), cautious at 0 mm (83 and 100 %), too small at 2 mm (33 and 67 %), since it does not
-    know how far the skin is off. It tells the views apart little (its correlation with the error's size is
+    know how far the skin is off; on lenhart2015's bones under a carried skin (seed 0, 29 views) 1.82 deg, 59 and
+    76 %. It tells the views apart little (its correlation with the error's size is
     0.08): a scale of how well the flexion is known, not a warning for one view."""
     if tibia is None or tibia.cov is None:
         return float("nan")
