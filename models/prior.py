@@ -907,6 +907,11 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
     prior_w = tibia_prior_weights(sigma_mm, sigma_deg, sigma_axial_deg)
     near = BandDistances(shank, len(pts))  # most of the cloud (the thigh, the knee) is asked once
 
+    def jacobian(xi, D, p, nrm):
+        """How the points' residuals move with ``xi`` (P, 6), at the correction ``xi`` (``D`` its pose) and
+        the points ``p`` in the tibia's current frame with their skin normals ``nrm``."""
+        return np.hstack([-np.cross(p, nrm) @ right_jacobian(xi[:3]), -nrm @ D[:3, :3].T])
+
     def fit(xi, sd, first_wide):
         """Gauss-Newton from ``xi`` with each point's sd ``sd``; the first ``first_wide`` iterations in the
         wide band. Returns xi, the points used in the last iteration (mask), their count and the RMS of the
@@ -929,7 +934,7 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
             # a change dxi of the rotation vector turns the tibia by dw = J_r(xi) dxi in its current frame (the
             # rotation's right Jacobian) and one of the translation moves it by R^T dt there: a point, in the
             # tibia's current frame, moves by -(dw x p) - R^T dt
-            J = np.hstack([-np.cross(p, nrm) @ right_jacobian(xi[:3]), -nrm @ D[:3, :3].T])
+            J = jacobian(xi, D, p, nrm)
             H = J.T @ J / sd ** 2 + np.diag(prior_w)
             g = J.T @ r / sd ** 2 + prior_w * xi
             dxi = -np.linalg.solve(H, g)
@@ -950,7 +955,7 @@ def correct_tibia(skin: SkinModel, points_model, alpha: float, sigma_mm: float =
         D = small_pose(xi)
         p = transform_points(invert_poses(T_prior @ D), pts[sel])
         _, nrm = shank.closest(p)
-        J = np.hstack([-np.cross(p, nrm) @ right_jacobian(xi[:3]), -nrm @ D[:3, :3].T])
+        J = jacobian(xi, D, p, nrm)
         return np.linalg.inv(J.T @ J / sd ** 2 + np.diag(prior_w))
 
     sd_used = point_sd_mm

@@ -357,9 +357,9 @@ def test_a_surface_fits_covariance_is_the_spread_of_fits_to_noisy_points():
     camera sees, each moved along the surface's normal by independent noise of 0.5 mm, fitted back (every
     component free, about a pivot off the centre) in 60 draws. The spread of the six components is the
     covariance's (each sd within 30 %: an estimate from 60 draws is within about 9 % of its own, and a covariance
-    off by the points' variance, the pivot or a transposed Jacobian is off by far more), and the fits' rotation
-    along a cylinder's axis, which its points cannot fix, comes out unbounded (and the turn about it, which only
-    its facets show, ten thousand times as uncertain as the turns across it)."""
+    off by the points' variance or the pivot is off by far more), and the slide along a cylinder's axis, which
+    its points cannot fix, comes out unbounded (and the turn about it, which only its facets show, ten thousand
+    times as uncertain as the turns across it)."""
     from knee.foundations.pointclouds import surface_fit_covariance
 
     m = trimesh.creation.icosphere(subdivisions=5, radius=1.0)

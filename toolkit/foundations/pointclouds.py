@@ -446,6 +446,14 @@ def icp_held_to_surface(source_points, surface, free=(True,) * 6, pivot=(0.0, 0.
     return _held_gauss_newton(source_points, pair, free, pivot, init, iterations, tolerance)
 
 
+def point_to_plane_rows(points, normals, pivot) -> np.ndarray:
+    """How each point's point-to-plane residual ``n . (p - q)`` moves with a small rigid motion of the
+    points (P, 6): a rotation about ``pivot`` (a rotation vector, rad: the first three) and a translation
+    (mm: the last three); what :func:`icp_held_to_surface`'s steps solve and
+    :func:`surface_fit_covariance` inverts."""
+    return np.hstack([np.cross(np.asarray(points, float) - np.asarray(pivot, float), normals), normals])
+
+
 def surface_fit_covariance(points, surface, point_sd_mm: float, pivot=(0.0, 0.0, 0.0),
                            max_distance: float = 20.0) -> tuple[np.ndarray, int]:
     """The covariance (6, 6) of a rigid point-to-plane fit of ``points`` (P, 3) onto ``surface`` at its
@@ -459,7 +467,7 @@ def surface_fit_covariance(points, surface, point_sd_mm: float, pivot=(0.0, 0.0,
     p = np.asarray(points, float)
     q, n = surface.closest_on_faces(p)
     near = np.linalg.norm(p - q, axis=1) < max_distance
-    A = np.hstack([np.cross(p[near] - np.asarray(pivot, float), n[near]), n[near]])
+    A = point_to_plane_rows(p[near], n[near], pivot)
     w, V = np.linalg.eigh(A.T @ A)
     fixed = w > 1e-9 * max(float(w.max()), 1e-300)
     cov = (V[:, fixed] / w[fixed]) @ V[:, fixed].T * point_sd_mm ** 2
@@ -487,7 +495,7 @@ def _held_gauss_newton(source_points, pair, free, pivot, init, iterations: int,
             break
         pn = p[near]
         r = np.einsum("ij,ij->i", pn - q, n)
-        A = np.hstack([np.cross(pn - c, n), n])[:, free]
+        A = point_to_plane_rows(pn, n, c)[:, free]
         x = np.zeros(6)
         x[free] = np.linalg.lstsq(A, -r, rcond=None)[0]
         step = np.eye(4)
