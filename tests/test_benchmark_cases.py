@@ -5,6 +5,7 @@ import csv
 import dataclasses
 import math
 import os
+import shutil
 
 import numpy as np
 import pytest
@@ -611,6 +612,25 @@ def test_estimate_fit_line_counts_the_views_fitted_poorly():
     assert line.endswith(f"f {POOR_FIT_RMS_MM + 7.0:.1f} mm, d {POOR_FIT_RMS_MM + 0.5:.1f} mm")
     assert estimate_fit(rows[:3])[0].endswith("0 over 3 mm (warned of a poor fit)")
     assert estimate_fit([row("e", float("nan")), CaseRow("links", "paper", 40.0)]) == []
+
+
+def test_a_case_with_a_damaged_file_is_a_failed_row_naming_it(small_case_set, tmp_path):
+    """A case whose depth image is cut short or whose rough pose is not rigid fails alone, its row
+    naming the file; the set's other cases run (not an internal error ending the whole run)."""
+    from knee.app.experiments.case_set import read_case_set, run_case_set
+
+    folder = tmp_path / "set"
+    shutil.copytree(small_case_set, folder)
+    cases = read_case_set(folder)["case"][:3]
+    assert len(cases) == 3
+    depth = folder / cases[0]["depth"]
+    depth.write_bytes(depth.read_bytes()[:300])
+    (folder / cases[1]["initial_pose"]).write_text("2 0 0 0\n0 2 0 0\n0 0 2 0\n0 0 0 1\n")  # a scale
+    ids = {c["id"] for c in cases}
+    rows = {r.case: r for r in run_case_set(folder, ["kinematics"], select=lambda c: c["id"] in ids)}
+    assert "not a readable .npy array" in rows[cases[0]["id"]].failed and depth.name in rows[cases[0]["id"]].failed
+    assert "initial pose" in rows[cases[1]["id"]].failed and "not a rotation" in rows[cases[1]["id"]].failed
+    assert not rows[cases[2]["id"]].failed
 
 
 def test_case_set_index_errors(tmp_path):

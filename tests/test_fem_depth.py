@@ -202,6 +202,26 @@ def test_depth_image_and_point_cloud_files(tmp_path, knee_like):
         Camera.looking_at([0, 0, 0], [0, 10, 0], up=[0, 1, 0])
 
 
+def test_truncated_point_cloud_files_are_refused_not_read_in_part(tmp_path, capfd):
+    """A cloud file cut short (an interrupted copy or write) is refused with the count it declared, and
+    nothing the reader printed reaches the terminal: open3d returns the points it had from a short binary
+    or ASCII PLY (printing its complaint on stderr), and from a short ASCII PCD the declared number of
+    points with the missing ones undefined, either of which would otherwise run as a measured view."""
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-50.0, 50.0, (1000, 3)) + [0.0, 0.0, 400.0]
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    for name, ascii_ in [("b.ply", False), ("a.ply", True), ("a.pcd", True), ("b.pcd", False)]:
+        whole = tmp_path / name
+        o3d.io.write_point_cloud(str(whole), cloud, write_ascii=ascii_)
+        np.testing.assert_allclose(load_point_cloud(whole), pts, atol=1e-3)  # the whole file reads back
+        data = whole.read_bytes()
+        cut = tmp_path / f"cut-{name}"
+        cut.write_bytes(data[:len(data) // 2])
+        with pytest.raises(KneeInputError, match=f"cut-{name}: truncated"):
+            load_point_cloud(cut)
+    assert "RPly" not in capfd.readouterr().err
+
+
 def _box_faces(rng, half=(30.0, 90.0, 45.0), n=400):
     """Points on five faces of a box (all but the bottom), their faces' outward normals and the faces'
     offsets (n . x = d)."""

@@ -258,6 +258,21 @@ CASES = [
     ("cloud-garbage", lambda c: ["fem", "volunteer", "--cloud", write(c, "c.ply", b"ply\ngarbage\x00\x01")], 2,
      "c.ply"),
     ("cloud-empty-xyz", lambda c: ["fem", "volunteer", "--cloud", write(c, "c.xyz", "")], 2, "c.xyz"),
+    ("cloud-truncated-ply", lambda c: _fem_cloud(c, "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n"
+                                                    "property float y\nproperty float z\nend_header\n1 2 400\n3"),
+     2, "c.ply: truncated"),
+    ("fem-initial-pose-scaled", lambda c: _fem_depth(c, npy_bytes(np.full((120, 160), 400.0)), extra=(
+        "--initial-pose", write(c, "p.txt", "2 0 0 0\n0 2 0 0\n0 0 2 0\n0 0 0 1\n"))), 2, "p.txt: its upper-left"),
+    ("fem-initial-pose-transposed", lambda c: _fem_depth(c, npy_bytes(np.full((120, 160), 400.0)), extra=(
+        "--initial-pose", write(c, "p.txt", "1 0 0 0\n0 1 0 0\n0 0 1 0\n10 20 30 1\n"))), 2, "p.txt: its last row"),
+    ("fem-pose-short", lambda c: ["fem", "volunteer", "--cloud", write(c, "c.xyz", "1 2 3\n"), "--pose",
+                                  write(c, "p.txt", "1 0 0\n")], 2, "--pose"),
+    ("fem-pose-reflection", lambda c: ["fem", "volunteer", "--cloud", write(c, "c.xyz", "1 2 3\n"), "--pose",
+                                       write(c, "p.txt", "-1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")], 2, "not a rotation"),
+    ("subject-skin-truncated", lambda c: ["fit", _cut_short(c, "subject/ct/skin.stl"), "--out", c / "o", "--quick"],
+     2, "skin.stl: truncated"),
+    ("subject-femur-truncated", lambda c: ["fit", _cut_short(c, "subject/ct/femur.stl"), "--out", c / "o",
+                                           "--quick"], 2, "femur.stl: truncated"),
     # ---- numbers and sizes
     ("seed-negative-fit", lambda c: ["fit", c / "subject", "--out", c / "o", "--seed", -1], 2, "--seed"),
     ("seed-negative-synth", lambda c: ["synth-subject", c / "s", "--seed", -1], 2, "--seed"),
@@ -354,6 +369,19 @@ def _replace_with_folder(c: Path, rel: str) -> Path:
 def _fem_depth(c: Path, content: bytes, name: str = "d.npy", extra=()) -> list:
     return ["fem", c / "subject", "--prior", c / "subject/truth.toml", "--depth", write(c, name, content),
             "--intrinsics", INTR, "--out", c / "o", *extra]
+
+
+def _fem_cloud(c: Path, content: str) -> list:
+    return ["fem", c / "subject", "--prior", c / "subject/truth.toml", "--cloud", write(c, "c.ply", content),
+            "--out", c / "o"]
+
+
+def _cut_short(c: Path, rel: str) -> Path:
+    """A subject's binary STL cut after half its bytes (an interrupted copy)."""
+    f = c / rel
+    data = f.read_bytes()
+    f.write_bytes(data[:len(data) // 2 + 7])
+    return c / "subject"
 
 
 def _gait_ms(c: Path) -> Path:

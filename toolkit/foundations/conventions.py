@@ -33,6 +33,8 @@ True
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from knee.foundations.errors import KneeInputError
@@ -163,6 +165,26 @@ def to_se3(T):
 def from_se3(M):
     """A pinocchio ``SE3`` as a (4, 4) homogeneous matrix."""
     return np.asarray(M.homogeneous, dtype=float)
+
+
+def read_pose_file(path, what: str) -> np.ndarray:
+    """A rigid pose (4, 4) from a text file of 16 numbers (row by row); ``what`` names it in the one-line
+    error (:class:`KneeInputError`) when the file is missing, cut short or not numbers, or its upper-left
+    3x3 block is not a rotation (a scale, a reflection or a transposed matrix's last row in its place)."""
+    path = Path(path)
+    if not path.is_file():
+        raise KneeInputError(f"{what} {path}: no such file")
+    try:
+        T = np.loadtxt(path, dtype=float, ndmin=2)
+        T = T.reshape(4, 4)
+    except (OSError, ValueError, UnicodeDecodeError):
+        raise KneeInputError(f"{what} {path}: not a readable 4x4 matrix (16 numbers)") from None
+    R_ = T[:3, :3]
+    if not (np.all(np.isfinite(T)) and np.allclose(R_ @ R_.T, np.eye(3), atol=1e-3) and np.linalg.det(R_) > 0):
+        raise KneeInputError(f"{what} {path}: its upper-left 3x3 block is not a rotation")
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+        raise KneeInputError(f"{what} {path}: its last row must be 0 0 0 1 (a transposed matrix?)")
+    return T
 
 
 def invert_poses(T):

@@ -54,6 +54,24 @@ def surface_space(path) -> str:
     return m.group(1).decode().upper() if m else "LPS"
 
 
+def _refuse_short_binary_stl(path: Path) -> None:
+    """Refuse a binary STL shorter than the triangle count in its header says (an interrupted copy or
+    export): 84 bytes of header and count, then 50 per triangle. An ASCII STL (it begins with 'solid' and
+    holds 'facet' lines) is left to the reader."""
+    size = path.stat().st_size
+    with path.open("rb") as fh:
+        head = fh.read(84)
+        ascii_like = head[:5].lower() == b"solid" and b"facet" in head + fh.read(512)
+    if ascii_like:
+        return
+    if size < 84:
+        raise KneeInputError(f"{path}: truncated: {size} bytes, less than a binary STL's 84-byte header")
+    n = int.from_bytes(head[80:84], "little")
+    if size < 84 + 50 * n:
+        raise KneeInputError(f"{path}: truncated: its header declares {n} triangles, the file holds "
+                             f"{(size - 84) // 50}")
+
+
 def read_surface(path, min_extent: float = 1.0) -> trimesh.Trimesh:
     """Read a bone surface in mm, converted to LPS.
 
@@ -65,12 +83,14 @@ def read_surface(path, min_extent: float = 1.0) -> trimesh.Trimesh:
         raise KneeInputError(f"surface file {path} not found")
     if path.suffix.lower() not in SURFACE_SUFFIXES:
         raise KneeInputError(f"{path}: surfaces must be STL, PLY or OBJ")
+    if path.suffix.lower() == ".stl":
+        _refuse_short_binary_stl(path)
     try:
         mesh = trimesh.load(path, force="mesh", process=True)
     except Exception as e:  # trimesh raises many types on malformed files
         raise KneeInputError(f"{path}: cannot read the surface ({e})") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise KneeInputError(f"{path}: no triangles in the surface")
+        raise KneeInputError(f"{path}: no triangles could be read from it (an empty, truncated or malformed file)")
     ext = float(np.ptp(mesh.vertices, axis=0).max())
     if not np.all(np.isfinite(mesh.vertices)):
         raise KneeInputError(f"{path}: non-finite vertex coordinates")

@@ -11,6 +11,9 @@ Points are ``(P, 3)`` float arrays in mm.
 
 from __future__ import annotations
 
+import os
+import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -194,6 +197,61 @@ def load_depth_image(path, K, T_world_cam=None, depth_scale: float = 1.0, drop_m
 CLOUD_FORMATS = (".ply", ".pcd", ".xyz", ".pts")
 
 
+def _declared_point_count(path: Path) -> tuple[int | None, int | None]:
+    """The number of points a PLY ('element vertex N') or PCD ('POINTS N') header declares, and for an
+    ASCII PCD the number of data lines that follow its header (open3d's reader returns the declared count
+    of points from a shorter file, the missing ones undefined); None where the format or file does not say."""
+    suffix = path.suffix.lower()
+    if suffix not in (".ply", ".pcd"):
+        return None, None
+    key = (b"element", b"vertex") if suffix == ".ply" else (b"points",)
+    declared = None
+    with open(path, "rb") as f:
+        for _ in range(200):  # a header is a few lines; the data follow it
+            line = f.readline()
+            if not line:
+                break
+            words = line.split()
+            if tuple(w.lower() for w in words[:len(key)]) == key and len(words) > len(key):
+                try:
+                    declared = int(words[len(key)])
+                except ValueError:
+                    pass
+            if words[:1] == [b"end_header"]:
+                break
+            if words[:1] in ([b"DATA"], [b"data"]):
+                if words[1:2] in ([b"ascii"], [b"ASCII"]):
+                    return declared, sum(1 for ln in f if ln.strip())
+                break
+    return declared, None
+
+
+class _c_stderr_captured:
+    """Capture what compiled code writes straight to the process's stderr (file descriptor 2) inside the
+    block, into ``self.text`` after it; Python's own ``sys.stderr`` is left as it is."""
+
+    def __enter__(self):
+        self.text = ""
+        try:
+            sys.stderr.flush()
+            self._saved = os.dup(2)
+        except OSError:  # no descriptor 2 to redirect (an embedded interpreter): nothing to capture
+            self._saved = None
+            return self
+        self._file = tempfile.TemporaryFile()
+        os.dup2(self._file.fileno(), 2)
+        return self
+
+    def __exit__(self, *exc):
+        if self._saved is not None:
+            os.dup2(self._saved, 2)
+            os.close(self._saved)
+            self._file.seek(0)
+            self.text = self._file.read().decode("utf-8", "replace")
+            self._file.close()
+        return False
+
+
 def load_point_cloud(path) -> np.ndarray:
     """Points (P, 3) in mm from a point-cloud file open3d reads (.ply, .pcd, .xyz, .pts). The points a
     depth camera writes for pixels without a return are dropped: not finite (NaN, infinite) or exactly at
@@ -208,9 +266,19 @@ def load_point_cloud(path) -> np.ndarray:
         with open(path, "rb") as f:
             if f.read(3) != b"ply":  # open3d's PLY reader would print its own complaint first
                 raise KneeInputError(f"{path}: not a PLY file (it does not start with 'ply')")
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):  # its warning is ours to say
+    declared, data_lines = _declared_point_count(path)
+    if declared is not None and data_lines is not None and data_lines < declared:
+        raise KneeInputError(f"{path}: truncated: its header declares {declared} points, {data_lines} follow it")
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error), _c_stderr_captured() as said:
+        # open3d's PLY reader (RPly) prints its complaints on the process's stderr and returns what it has
         pc = o3d.io.read_point_cloud(str(path))
+    complaint = [ln.strip() for ln in said.text.splitlines() if "error" in ln.lower() or "unexpected" in ln.lower()]
+    if complaint:
+        raise KneeInputError(f"{path}: truncated or malformed ({complaint[0]})")
     pts = np.asarray(pc.points, dtype=float)
+    if declared is not None and len(pts) < declared:
+        raise KneeInputError(f"{path}: truncated or malformed: its header declares {declared} points, "
+                             f"{len(pts)} could be read")
     if len(pts) == 0:
         raise KneeInputError(f"{path}: no points read (an empty cloud, or not three numbers x y z per line)")
     valid = np.all(np.isfinite(pts), axis=1) & np.any(pts != 0.0, axis=1)

@@ -9,12 +9,12 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 from knee.app.commands import fem_subject
 from knee.app.console import ProgressBar, check_max_steps, check_new, error, say
 from knee.app.experiments.cases import case_points, case_truth, run_standard_case
 from knee.app.views.fem import FemRecorder
+from knee.foundations.conventions import read_pose_file
 from knee.foundations.errors import EXIT_NUMERICAL, DivergenceError, KneeInputError
 from knee.foundations.pointclouds import backproject, principal_point_note
 from knee.models.fem.depth import DepthNoise, camera_from_spec
@@ -30,10 +30,7 @@ def measured_points(args):
         raise KneeInputError("give either --cloud or --depth, not both")
     pose = None
     if args.pose:
-        try:
-            pose = np.loadtxt(args.pose, dtype=float).reshape(4, 4)
-        except (OSError, ValueError):
-            raise KneeInputError(f"--pose {args.pose}: not a readable 4x4 matrix (16 numbers)") from None
+        pose = read_pose_file(args.pose, "--pose")
     if args.keep_flying and not (args.depth or args.cloud):
         raise KneeInputError("--keep-flying goes with --depth or --cloud (the measured points' flying pixels)")
     if args.cloud:

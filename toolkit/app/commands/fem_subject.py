@@ -41,7 +41,8 @@ from knee.fitting.pipeline import anatomical_frames  # noqa: E402
 from knee.fitting.subject import load_subject, mirror_mesh  # noqa: E402
 from knee.fitting.subject_anatomy import subject_anatomy  # noqa: E402
 from knee.foundations import recording as R  # noqa: E402
-from knee.foundations.conventions import JOINT_COORDINATES, invert_poses, pose_to_joint, transform_points  # noqa: E402
+from knee.foundations.conventions import (JOINT_COORDINATES, invert_poses, pose_to_joint, read_pose_file,  # noqa: E402
+                                          transform_points)
 from knee.foundations.errors import KneeInputError  # noqa: E402
 from knee.foundations.files import staged_folder  # noqa: E402
 from knee.foundations.imaging import write_surface  # noqa: E402
@@ -76,17 +77,6 @@ def grid_label(n_across) -> str:
     if isinstance(n_across, str):
         return "sized by the knee (cells along x about a sixth of the femur's width)"
     return (str(n_across) if np.ndim(n_across) == 0 else " x ".join(str(int(v)) for v in n_across)) + " cells across"
-
-
-def _read_pose(path) -> np.ndarray:
-    try:
-        T = np.loadtxt(path, dtype=float).reshape(4, 4)
-    except (OSError, ValueError):
-        raise KneeInputError(f"--initial-pose {path}: not a readable 4x4 matrix (16 numbers)") from None
-    R_ = T[:3, :3]
-    if not (np.all(np.isfinite(T)) and np.allclose(R_ @ R_.T, np.eye(3), atol=1e-3) and np.linalg.det(R_) > 0):
-        raise KneeInputError(f"--initial-pose {path}: its upper-left 3x3 block is not a rotation")
-    return T
 
 
 #: The span a camera's view of a knee can have, mm: a smaller one is a cloud or depth image in other units
@@ -165,7 +155,7 @@ def run(args) -> int:
         raise KneeInputError("a subject's run writes its results to a folder: --out OUT")
     inputs = (subject_dir,) + tuple(Path(v) for v in (args.prior, args.cloud, args.depth, args.initial_pose) if v)
     out = out_dir(args.out, args.force, inputs=inputs)
-    init_pose = _read_pose(args.initial_pose) if args.initial_pose else None
+    init_pose = read_pose_file(args.initial_pose, "--initial-pose") if args.initial_pose else None
     method = args.method or "links"
     points_cam, depth, K, flying = _points(args)
     subject = load_subject(subject_dir)

@@ -59,10 +59,10 @@ from knee.fitting.reference_data import lenhart_subject, visible_human_knee, vis
 from knee.fitting.subject import load_subject
 from knee.fitting.subject_anatomy import subject_anatomy
 from knee.fitting.synthetic import make_subject
-from knee.foundations.conventions import invert_poses, joint_to_pose, pose_to_joint, transform_points
+from knee.foundations.conventions import invert_poses, joint_to_pose, pose_to_joint, read_pose_file, transform_points
 from knee.foundations.errors import KneeError, KneeInputError
 from knee.foundations.files import read_text
-from knee.foundations.pointclouds import backproject, voxel_downsample
+from knee.foundations.pointclouds import backproject, read_depth_image, voxel_downsample
 from knee.foundations.surfaces import SurfaceQuery
 from knee.models.fem.anatomy import bone_clearance, bone_queries, in_contact
 from knee.models.fem.depth import Camera, DepthNoise, default_camera, render_depth
@@ -560,7 +560,7 @@ def case_intrinsics(case: dict) -> np.ndarray:
 
 def case_points_cam(folder: Path, case: dict) -> np.ndarray:
     """A case's depth points (P, 3), mm, in its camera's frame, as a measured image's (mixed pixels left out)."""
-    return backproject(np.load(Path(folder) / case["depth"]).astype(float), case_intrinsics(case), drop_mixed=True)
+    return backproject(read_depth_image(Path(folder) / case["depth"]), case_intrinsics(case), drop_mixed=True)
 
 
 def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T_ct_model, stages: bool = False,
@@ -578,7 +578,7 @@ def run_case(folder: Path, case: dict, method: str, anatomy, prior: Mechanism, T
     out (the knee found by the global search). ``settings``: the association model's
     (:class:`knee.models.fem.scene.FemSettings`; None: its defaults), e.g. a finer grid."""
     pts = case_points_cam(folder, case)
-    init = np.loadtxt(folder / case["initial_pose"]).reshape(4, 4)
+    init = read_pose_file(folder / case["initial_pose"], f"case {case['id']}'s initial pose")
     model = build_knee_model(anatomy, settings, prior=prior)
     t0, c0 = time.perf_counter(), time.process_time()
     recon, rough = reconstruct_in_camera(model, prior, pts, invert_poses(init @ T_ct_model) if guess else None, method,
