@@ -64,6 +64,9 @@ def subject_anatomy(subject: Subject, prior: MechanismParams | None = None, widt
         mcl, lcl = default_collaterals(anatomy)
         anatomy = replace(anatomy, mcl=anatomy.mcl if anatomy.mcl is not None else mcl,
                           lcl=anatomy.lcl if anatomy.lcl is not None or prior is not None else lcl)
-    anatomy.check()
+    try:
+        anatomy.check()
+    except KneeInputError as e:  # the model's check knows the surfaces, not the folder they came from
+        raise KneeInputError(f"subject {subject.root}: {e}") from None
     return anatomy
 

@@ -269,6 +269,8 @@ CASES = [
                                   write(c, "p.txt", "1 0 0\n")], 2, "--pose"),
     ("fem-pose-reflection", lambda c: ["fem", "volunteer", "--cloud", write(c, "c.xyz", "1 2 3\n"), "--pose",
                                        write(c, "p.txt", "-1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")], 2, "not a rotation"),
+    ("subject-skin-inside-bones", lambda c: _fem_cloud(_skin_shrunk(c), "0 0 400\n100 100 500\n", "c.xyz"), 2,
+     "/subject: "),
     ("subject-skin-truncated", lambda c: ["fit", _cut_short(c, "subject/ct/skin.stl"), "--out", c / "o", "--quick"],
      2, "skin.stl: truncated"),
     ("subject-femur-truncated", lambda c: ["fit", _cut_short(c, "subject/ct/femur.stl"), "--out", c / "o",
@@ -371,9 +373,21 @@ def _fem_depth(c: Path, content: bytes, name: str = "d.npy", extra=()) -> list:
             "--intrinsics", INTR, "--out", c / "o", *extra]
 
 
-def _fem_cloud(c: Path, content: str) -> list:
-    return ["fem", c / "subject", "--prior", c / "subject/truth.toml", "--cloud", write(c, "c.ply", content),
+def _fem_cloud(c: Path, content: str, name: str = "c.ply") -> list:
+    return ["fem", c / "subject", "--prior", c / "subject/truth.toml", "--cloud", write(c, name, content),
             "--out", c / "o"]
+
+
+def _skin_shrunk(c: Path) -> Path:
+    """The subject's skin shrunk to half its size about its centre: the bones stick out of it."""
+    from knee.foundations.imaging import read_surface, write_surface
+
+    f = c / "subject/ct/skin.stl"
+    skin = read_surface(f)
+    centre = skin.vertices.mean(axis=0)
+    skin.vertices = (skin.vertices - centre) * 0.5 + centre
+    write_surface(f, skin)
+    return c
 
 
 def _cut_short(c: Path, rel: str) -> Path:
