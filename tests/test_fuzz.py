@@ -245,6 +245,12 @@ CASES = [
     ("motion-header-only", lambda c: ["fit", subject_with(c, "motion.csv", (c / "subject/motion.csv")
                                                           .read_text().splitlines()[0] + "\n"), "--out", c / "o",
                                       "--quick"], 2, "motion.csv"),
+    ("motion-value-huge", lambda c: ["fit", _motion_value(c, "1e308"), "--out", c / "o", "--quick"], 2,
+     "motion.csv: tf_flexion_deg is 1e+308 in data row 3"),
+    ("motion-timestamps-as-translation", lambda c: ["fit", _motion_value(c, "1701234567", col=5), "--out", c / "o",
+                                                    "--quick"], 2, "tf_proximal_mm is 1.70123e+09"),
+    ("landmark-given-twice", lambda c: ["fit", _landmark_twice(c), "--out", c / "o", "--quick"], 2,
+     "given 2 times at different positions"),
     ("motion-folder", lambda c: ["fit", _replace_with_folder(c, "subject/motion.csv"), "--out", c / "o",
                                  "--quick"], 2, "motion.csv"),
     # ---- depth files and clouds
@@ -359,6 +365,25 @@ def _surface_space_lie(c: Path) -> Path:
     data = bytearray(f.read_bytes())
     data[:80] = b"SPACE=RAS".ljust(80, b" ")
     f.write_bytes(bytes(data))
+    return c / "subject"
+
+
+def _motion_value(c: Path, value: str, col: int = 1, row: int = 3) -> Path:
+    """The subject's motion.csv with one value replaced (column ``col`` of data row ``row``, 1-based)."""
+    f = c / "subject/motion.csv"
+    lines = f.read_text().splitlines()
+    cells = lines[row].split(",")
+    cells[col] = value
+    lines[row] = ",".join(cells)
+    f.write_text("\n".join(lines) + "\n")
+    return c / "subject"
+
+
+def _landmark_twice(c: Path) -> Path:
+    """The CT landmarks with their first point given a second time, elsewhere."""
+    f = c / "subject/ct/landmarks.mrk.json"
+    mk = read_markups(f)
+    write_markups(f, list(mk.labels) + [mk.labels[0]], np.vstack([mk.points, mk.points[0] + 20.0]))
     return c / "subject"
 
 

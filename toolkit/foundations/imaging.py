@@ -159,10 +159,15 @@ class Markups:
     path: Path | None = None
 
     def get(self, label: str) -> np.ndarray:
-        """The point with this label; error naming it (and the file) when absent or undefined."""
+        """The point with this label; error naming it (and the file) when absent, undefined, or given more than
+        once at different positions (which one was meant cannot be told)."""
         where = f" in {self.path}" if self.path else ""
         if label in self.labels:
-            return self.points[self.labels.index(label)]
+            at = [i for i, lb in enumerate(self.labels) if lb == label]
+            if len(at) > 1 and np.ptp(self.points[at], axis=0).max() > 0.0:
+                raise KneeInputError(f"landmark {label}{where} is given {len(at)} times at different positions; "
+                                     "keep the one meant")
+            return self.points[at[0]]
         if label in self.missing:
             raise KneeInputError(f"landmark {label}{where} is not defined (positionStatus)")
         raise KneeInputError(f"missing landmark {label}{where}")
@@ -244,12 +249,33 @@ class MotionFile:
     rows: int
 
 
+#: The largest joint angle (deg) and translation (mm) a motion file's row may hold: beyond a full turn or a
+#: metre it is not a knee's motion in degrees and millimetres (radians read as degrees stay inside; a value
+#: such as 1e308 or a column of timestamps does not).
+MOTION_MAX_DEG, MOTION_MAX_MM = 360.0, 1000.0
+
+
+def _check_motion_range(q, cols, path) -> None:
+    """Refuse a finite joint coordinate beyond :data:`MOTION_MAX_DEG` (the first three columns of ``q``) or
+    :data:`MOTION_MAX_MM` (the last three), naming the column and the data row; non-finite values are the
+    reader's to skip."""
+    q = np.asarray(q, float)
+    limit = np.array([MOTION_MAX_DEG] * 3 + [MOTION_MAX_MM] * 3)
+    bad = np.isfinite(q) & (np.abs(q) > limit)
+    if bad.any():
+        r, c = map(int, np.argwhere(bad)[0])
+        unit = "deg" if c < 3 else "mm"
+        raise KneeInputError(f"{path}: {cols[c]} is {q[r, c]:g} in data row {r + 1} (beyond {limit[c]:g} {unit}: "
+                             f"not a knee's motion in degrees and millimetres)")
+
+
 def _group(header, rows, group, path, side="right"):
     cols = motion_columns(group)
     mcols = motion_columns(group, "matrix")
     if all(c in header for c in cols):
         idx = [header.index(c) for c in cols]
         q = rows[:, idx]
+        _check_motion_range(q, cols, path)
         q[:, :3] = np.radians(q[:, :3])
         return q, idx
     if all(c in header for c in mcols):
@@ -257,6 +283,8 @@ def _group(header, rows, group, path, side="right"):
         T = np.zeros((len(rows), 4, 4))
         T[:, :3, :] = rows[:, idx].reshape(-1, 3, 4)
         T[:, 3, 3] = 1.0
+        _check_motion_range(np.column_stack([np.zeros((len(rows), 3)), T[:, :3, 3]]),
+                            [""] * 3 + [mcols[3], mcols[7], mcols[11]], path)
         ok = np.all(np.isfinite(T), axis=(1, 2))
         R = T[ok, :3, :3]
         if R.size and np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max() > 1e-3:
