@@ -1772,3 +1772,32 @@ def test_a_version_1_case_sets_intrinsics_are_read_in_the_pixel_centre_conventio
         index = read_case_set(old)
         for a, b in zip(index["case"], new["case"]):
             np.testing.assert_allclose(a["intrinsics"], np.array(b["intrinsics"]) - [0.0, 0.0, 0.5, 0.5])
+
+
+def test_each_seeds_case_set_draws_a_prior_of_its_own():
+    """The case set's prior: the truth mechanism with every TF link endpoint moved 1-2 mm, drawn from the set's
+    own seed. Catches sets of different seeds sharing one prior error (seeds 0-4 all drew the same prior before:
+    each tried the draws after its seed in one stream and all landed on the first that assembles), one set's
+    anatomies drawing their priors' errors in the same directions, a draw that depends on anything but the seed
+    and the parameter set's name, and endpoints moved outside 1-2 mm."""
+    from knee.app.experiments.case_set import _assembling_prior
+    from knee.models.mechanism.solver import Mechanism
+
+    truth = Mechanism.from_name("volunteer").params
+    drawn = [_assembling_prior(truth, seed) for seed in range(5)]
+    vectors = np.array([p.to_vector() for p, _ in drawn])
+    for i in range(5):
+        for j in range(i + 1, 5):
+            assert np.abs(vectors[i] - vectors[j]).max() > 0.1, f"seeds {i} and {j} drew the same prior"
+    again, k = _assembling_prior(truth, 3)
+    np.testing.assert_array_equal(again.to_vector(), vectors[3])
+    assert k == drawn[3][1]
+    other = dataclasses.replace(truth, name="another-knee")  # another anatomy's parameter set, the same seed
+    moved_other = _assembling_prior(other, 3)[0].to_vector() - other.to_vector()
+    assert np.abs(moved_other - (vectors[3] - truth.to_vector())).max() > 0.1
+    for prior, _ in drawn:
+        lo, hi = Mechanism(prior).assembly_range
+        assert lo <= 0.0 and hi >= math.radians(120.0)
+        moved = np.array([np.linalg.norm(getattr(a, part) - getattr(b, part))
+                          for a, b in zip(prior.links, truth.links) for part in ("femur", "tibia")])
+        assert np.all((moved > 1.0 - 1e-9) & (moved < 2.0 + 1e-9)), moved

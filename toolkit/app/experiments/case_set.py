@@ -216,19 +216,31 @@ def _write_prior(path: Path, params) -> Path:
     return path
 
 
+#: How many of a set's prior draws :func:`_assembling_prior` tries before it gives up.
+PRIOR_DRAWS = 50
+
+
 def _assembling_prior(params, seed: int):
-    """The truth's parameter set with every TF link endpoint moved 1-2 mm, drawn from seeds ``seed + 1``
-    on until it assembles over 0-120 deg (as a fitted prior does, whose fit is refused otherwise)."""
-    for k in range(seed + 1, seed + 50):
-        p = dataclasses.replace(perturb_endpoints(params, 1.0, 2.0, seed=k), name=f"{params.name}-perturbed")
+    """The truth's parameter set with every TF link endpoint moved 1-2 mm, the set's own draw: draws 0, 1, ...
+    of :func:`knee.fitting.optimize.perturb_endpoints`, each seeded by the set's seed and the draw's name
+    (``prior/NAME/J``, NAME the parameter set's, as :func:`case_rng` seeds a part of the set), until one
+    assembles over 0-120 deg (as a fitted prior does, whose fit is refused otherwise). Returns the prior and
+    the draw's index. Each seed and each anatomy draws from a stream of its own, so that the sets of different
+    seeds hold different priors, and one set's anatomies priors moved in unrelated directions (before, seed s
+    tried the draws s + 1, s + 2, ... of one stream shared by the anatomies, and seeds 0-4 all landed on draw
+    5: one prior error shared by the five sets, BENCHMARKS.md)."""
+    for j in range(PRIOR_DRAWS):
+        draw = [int(seed), zlib.crc32(f"prior/{params.name}/{j}".encode("utf-8"))]
+        p = dataclasses.replace(perturb_endpoints(params, 1.0, 2.0, seed=draw), name=f"{params.name}-perturbed")
         try:
             m = Mechanism(p)
         except KneeError:
             continue
         lo, hi = m.assembly_range
         if lo <= 0.0 and hi >= math.radians(120.0):
-            return p, k
-    raise KneeError(f"no perturbed prior of {params.name} assembles over 0-120 deg")
+            return p, j
+    raise KneeError(f"no perturbed prior of {params.name} assembles over 0-120 deg in {PRIOR_DRAWS} draws of "
+                    f"seed {seed}")
 
 
 def _anatomies(out: Path, data, seed: int, names, patella: bool = False,
@@ -263,7 +275,8 @@ def _anatomies(out: Path, data, seed: int, names, patella: bool = False,
         if patella:
             note += "; the truth's tissue holds the patella, moved by the truth mechanism's PF motion"
         prior, k = _assembling_prior(prior_of, seed)
-        note += f"; prior: every TF link endpoint moved 1-2 mm (seed {k}, the first that assembles over 0-120 deg)"
+        note += (f"; prior: every TF link endpoint moved 1-2 mm (draw {k} of seed {seed}, the first that assembles "
+                 "over 0-120 deg)")
         path = _write_prior(out / "priors" / f"{name}.toml", prior)
         res.append((Anatomy(name, folder.relative_to(out), path.relative_to(out), truth.params.name, note), truth,
                     prior))
