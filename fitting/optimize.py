@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, replace
 from collections.abc import Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import differential_evolution, least_squares
@@ -200,10 +200,11 @@ def synthetic_motion(params: MechanismParams, flexion_deg, noise: bool = True, s
 
 
 def perturb_endpoints(params: MechanismParams, low: float = 0.5, high: float = 2.0,
-                      seed: int | Sequence[int] = 0) -> MechanismParams:
+                      seed: int | Sequence[int] | np.random.Generator = 0) -> MechanismParams:
     """A copy with every TF link endpoint moved in a random direction by a random distance in
     [low, high] mm (a first estimate within the paper's 2 mm of the truth). ``seed``: the random stream's
-    seed, a whole number or a sequence of them (:func:`numpy.random.default_rng`'s)."""
+    seed, a whole number or a sequence of them, or the stream itself (what :func:`numpy.random.default_rng`
+    takes)."""
     rng = np.random.default_rng(seed)
     v = params.to_vector().copy()
     for i in range(N_LINKS):

@@ -222,15 +222,15 @@ PRIOR_DRAWS = 50
 
 def _assembling_prior(params, seed: int):
     """The truth's parameter set with every TF link endpoint moved 1-2 mm, the set's own draw: draws 0, 1, ...
-    of :func:`knee.fitting.optimize.perturb_endpoints`, each seeded by the set's seed and the draw's name
-    (``prior/NAME/J``, NAME the parameter set's, as :func:`case_rng` seeds a part of the set), until one
-    assembles over 0-120 deg (as a fitted prior does, whose fit is refused otherwise). Returns the prior and
+    of :func:`knee.fitting.optimize.perturb_endpoints`, each from the set's stream for the draw's name
+    (:func:`case_rng` of ``prior``, the parameter set's name and J, as each part of the set is drawn), until
+    one assembles over 0-120 deg (as a fitted prior does, whose fit is refused otherwise). Returns the prior and
     the draw's index. Each seed and each anatomy draws from a stream of its own, so that the sets of different
     seeds hold different priors, and one set's anatomies priors moved in unrelated directions (before, seed s
     tried the draws s + 1, s + 2, ... of one stream shared by the anatomies, and seeds 0-4 all landed on draw
     5: one prior error shared by the five sets, BENCHMARKS.md)."""
     for j in range(PRIOR_DRAWS):
-        draw = [int(seed), zlib.crc32(f"prior/{params.name}/{j}".encode("utf-8"))]
+        draw = case_rng(seed, "prior", params.name, str(j))
         p = dataclasses.replace(perturb_endpoints(params, 1.0, 2.0, seed=draw), name=f"{params.name}-perturbed")
         try:
             m = Mechanism(p)
