@@ -614,6 +614,28 @@ def test_estimate_fit_line_counts_the_views_fitted_poorly():
     assert estimate_fit([row("e", float("nan")), CaseRow("links", "paper", 40.0)]) == []
 
 
+def test_axial_disagreement_line_names_the_warned_views_and_the_unwarned_as_far_off():
+    """The report's line on the warning that the thigh and the whole skin disagree about the femur's turn: the
+    warned views worst first by the worse bone's footprint error, their range and median, and how many
+    unwarned views ended as far off as the least of them (what the warning misses); rows without footprint
+    errors are left out, and without any warned view the line says so."""
+    from knee.app.experiments.case_set import CaseRow
+    from knee.app.reports.case_set import AXIAL_WARNING, axial_disagreement
+
+    def row(case, femur, tibia, warned=False):
+        return CaseRow("links", "paper", 40.0, case=case, femur_footprints_mm=femur, tibia_footprints_mm=tibia,
+                       notes=(AXIAL_WARNING + " by 14 deg" if warned else "the shank is hardly seen"))
+
+    rows = [row("a", 1.0, 2.0), row("b", 9.0, 3.0, True), row("c", 2.0, 30.0, True), row("d", 10.0, 1.0),
+            row("e", 8.0, 8.5), row("f", float("nan"), float("nan"), True)]
+    (line,) = axial_disagreement(rows)
+    assert line.startswith("(iii) 2 of 5 views warned") and "error 9.0-30.0 mm (median 19.5)" in line
+    assert "; 1 other view as far off or further: c 30.0 mm, b 9.0 mm" in line  # d (10.0), not e (8.5)
+    assert axial_disagreement(rows[:1], "set 0,") == ["set 0, no view warned that the thigh and the whole skin "
+                                                      "disagree about the femur's turn"]
+    assert axial_disagreement(rows[-1:]) == []
+
+
 def test_a_case_with_a_damaged_file_is_a_failed_row_naming_it(small_case_set, tmp_path):
     """A case whose depth image is cut short or whose rough pose is not rigid fails alone, its row
     naming the file; the set's other cases run (not an internal error ending the whole run)."""

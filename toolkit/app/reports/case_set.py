@@ -149,6 +149,7 @@ def targets(rows, floors=()) -> list[str]:
                      + (f" (CPU time {_median(cpu):.1f} s, every thread's)" if cpu else "")
                      + f" (target <= 5 s): {'met' if w <= 5 else 'NOT met'}")
     lines += estimate_fit(ok)
+    lines += axial_disagreement(ok)
     failed = [r for r in rows if r.failed]
     if failed:
         lines.append(f"{len(failed)} runs failed (listed in the table)")
@@ -171,6 +172,33 @@ def estimate_fit(rows, label: str = "(iii)") -> list[str]:
             f"{len(poor)} over {POOR_FIT_RMS_MM:g} mm (warned of a poor fit)"
             + (": " + ", ".join(f"{getattr(r, 'case', '') or r.camera} {r.estimate_rms_mm:.1f} mm" for r in poor[:5])
                + (" ..." if len(poor) > 5 else "") if poor else "")]
+
+
+#: What a run's notes say when the thigh's registration and the whole posed skin disagree about the femur's turn
+#: (:attr:`knee.models.fem.methods.AxialPlacement.warning`).
+AXIAL_WARNING = "the thigh's registration and the whole skin disagree"
+
+
+def axial_disagreement(rows, label: str = "(iii)") -> list[str]:
+    """The views whose run warned that the thigh's registration and the whole posed skin disagree about the
+    femur's turn about the thigh's axis, with their footprint errors (the worse bone's), and how many of the
+    other views ended as far off as the least of them: whether the warning tells the wrong matches apart. A line
+    starting with ``label``, or none where no row has footprint errors."""
+    ok = [r for r in rows if math.isfinite(r.femur_footprints_mm) and math.isfinite(r.tibia_footprints_mm)]
+    if not ok:
+        return []
+    worse = {id(r): max(r.femur_footprints_mm, r.tibia_footprints_mm) for r in ok}
+    warned = sorted((r for r in ok if AXIAL_WARNING in r.notes), key=lambda r: -worse[id(r)])
+    if not warned:
+        return [f"{label} no view warned that the thigh and the whole skin disagree about the femur's turn"]
+    least = worse[id(warned[-1])]
+    others = sum(worse[id(r)] >= least for r in ok if AXIAL_WARNING not in r.notes)
+    return [f"{label} {len(warned)} of {len(ok)} views warned that the thigh and the whole skin disagree about the "
+            f"femur's turn: the worse bone's footprint error {least:.1f}-{worse[id(warned[0])]:.1f} mm "
+            f"(median {_median(worse[id(r)] for r in warned):.1f}); {others} other view{'' if others == 1 else 's'} as far "
+            "off or further: "
+            + ", ".join(f"{getattr(r, 'case', '') or r.camera} {worse[id(r)]:.1f} mm" for r in warned[:5])
+            + (" ..." if len(warned) > 5 else "")]
 
 
 #: What a run's notes say when the view cannot show the flexion (the flexion estimate's warnings, its fallback).
