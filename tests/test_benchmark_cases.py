@@ -631,6 +631,7 @@ def test_axial_disagreement_line_names_the_warned_views_and_the_unwarned_as_far_
     (line,) = axial_disagreement(rows)
     assert line.startswith("(iii) 2 of 5 views warned") and "error 9.0-30.0 mm (median 19.5)" in line
     assert "; 1 other view as far off or further: c 30.0 mm, b 9.0 mm" in line  # d (10.0), not e (8.5)
+    assert "error 30.0 mm; 0 other views" in axial_disagreement([rows[0], rows[2]])[0]  # one warned view: no range
     assert axial_disagreement(rows[:1], "set 0,") == ["set 0, no view warned that the thigh and the whole skin "
                                                       "disagree about the femur's turn"]
     assert axial_disagreement(rows[-1:]) == []

@@ -193,10 +193,11 @@ def axial_disagreement(rows, label: str = "(iii)") -> list[str]:
         return [f"{label} no view warned that the thigh and the whole skin disagree about the femur's turn"]
     least = worse[id(warned[-1])]
     others = sum(worse[id(r)] >= least for r in ok if AXIAL_WARNING not in r.notes)
-    return [f"{label} {len(warned)} of {len(ok)} views warned that the thigh and the whole skin disagree about the "
-            f"femur's turn: the worse bone's footprint error {least:.1f}-{worse[id(warned[0])]:.1f} mm "
-            f"(median {_median(worse[id(r)] for r in warned):.1f}); {others} other view{'' if others == 1 else 's'} as far "
-            "off or further: "
+    spread = (f"{least:.1f} mm" if len(warned) == 1 else f"{least:.1f}-{worse[id(warned[0])]:.1f} mm (median "
+              f"{_median(worse[id(r)] for r in warned):.1f})")
+    return [f"{label} {len(warned)} of {len(ok)} view{'' if len(ok) == 1 else 's'} warned that the thigh and the whole "
+            f"skin disagree about the femur's turn: the worse bone's footprint error {spread}; {others} other "
+            f"view{'' if others == 1 else 's'} as far off or further: "
             + ", ".join(f"{getattr(r, 'case', '') or r.camera} {worse[id(r)]:.1f} mm" for r in warned[:5])
             + (" ..." if len(warned) > 5 else "")]
 
