@@ -1176,6 +1176,9 @@ def keep_bones_apart(model: AssociationModel, T_tibia) -> tuple[np.ndarray, np.n
 #: points' springs). Over the five seeds (300 cases, ``knee compare``), skin -> points: (iii) 2.21 -> 2.09 mm
 #: at 0-1 mm mismatch, 4.04 -> 4.10 mm at 2 mm, 2.45 -> 2.39 mm over all, below (iv) in 93 -> 94 % of the
 #: cases; the phantom 2.13 -> 1.90 mm at 0-1 mm, the Visible Human 2.42 -> 2.50 mm (BENCHMARKS.md).
+SURFACE_SPRING_KINDS = ("from_points", "from_skin")
+SURFACE_SPRINGS = "from_points"
+
 #: Where the thigh's registration and the whole posed skin disagree about the femur's turn about the thigh's
 #: axis (:attr:`AxialPlacement.disagrees`), the flexion estimate is made again from where the thigh alone put
 #: the femur, and kept if the skin fits the points better there (:func:`prior_method`'s ``retry_estimate``).
@@ -1190,8 +1193,6 @@ def keep_bones_apart(model: AssociationModel, T_tibia) -> tuple[np.ndarray, np.n
 #: same flexion within 0.1 deg; their footprints 2.8 and 3.8 mm, mean of the bones, against 2.8 and 4.4 without
 #: it), on 3 the first was kept.
 RETRY_ESTIMATE = True
-SURFACE_SPRING_KINDS = ("from_points", "from_skin")
-SURFACE_SPRINGS = "from_points"
 
 
 def prior_method(method: str, model: AssociationModel, prior: Mechanism, points, max_steps: int = 80,
