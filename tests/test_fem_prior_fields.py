@@ -537,7 +537,7 @@ def test_a_flexion_estimate_the_thigh_disagrees_with_is_made_again_from_the_thig
     real_estimate, real_register = fm.estimate_flexion, fm.register_to_model
     calls, truth = [], {}
 
-    def estimate(skin, points, T_init=None, worse_again=False, **kw):
+    def estimate(skin, points, T_init=None, **kw):
         calls.append(T_init)
         if len(calls) == 1:  # the first estimate: the true one, spoilt
             e = truth["e"] = real_estimate(skin, points, T_init=T_init, **kw)

@@ -1280,8 +1280,12 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     # (30 ICP iterations: the estimate's registration is already close; 60 gave the same transforms)
     axial = None
     if femur_from == "thigh":
-        pts_est = transform_points(invert_poses(est.T_world_model), pts)
-        _, fitness, T_reg = register_to_model(model, pts_est, iterations=30)
+        def thigh_placement(est):
+            pts_est = transform_points(invert_poses(est.T_world_model), pts)
+            _, fitness, T_thigh = register_to_model(model, pts_est, iterations=30)
+            return pts_est, fitness, T_thigh
+
+        pts_est, fitness, T_reg = thigh_placement(est)
         if weigh_axial:
             T_thigh = T_reg
             T_reg, axial = place_along_thigh(model, est, pts_est, T_reg)
@@ -1297,8 +1301,7 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
                     notes = list(est.warnings) + [f"the flexion estimated again from where the thigh alone put the femur "
                                                   f"fits the points better ({est.rms:.3f} mm RMS at "
                                                   f"{math.degrees(est.flexion):.1f} deg, against {before}): kept"]
-                    pts_est = transform_points(invert_poses(est.T_world_model), pts)
-                    _, fitness, T_reg = register_to_model(model, pts_est, iterations=30)
+                    pts_est, fitness, T_reg = thigh_placement(est)
                     T_reg, axial = place_along_thigh(model, est, pts_est, T_reg)
             if np.any(np.abs(axial.thigh - axial.kept) > 2.0):  # mm, deg: the thigh overruled, said so
                 notes.append(axial.note)
