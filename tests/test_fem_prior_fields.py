@@ -963,3 +963,34 @@ def test_the_residual_weighed_shank_option_reaches_both_tibia_corrections(volunt
     asked.clear()
     fm.prior_method("init", build_association_model(volunteer), volunteer, pts, adapt_point_sd=True)
     assert asked == [True, True]
+
+
+def test_the_second_tibia_prior_option_reaches_the_second_correction_only(volunteer, monkeypatch):
+    """prior_method's second_tibia_prior sets the prior's sds of the tibia's second correction (on the FEM-posed
+    shank) and leaves the first one's at their defaults; off by default; anything but three positive numbers is
+    refused with a one-line KneeInputError. Catches the option dropped on its way, given to both corrections, or
+    its values swapped."""
+    import knee.models.fem.methods as fm
+    from knee.app.experiments.cases import case_points
+    from knee.foundations.errors import KneeInputError
+    from knee.models.fem.depth import default_camera
+
+    pts, _ = case_points(volunteer, 60.0, default_camera(), None)
+    monkeypatch.setattr(fm, "surface_phase", lambda model_, surf, max_steps, steps: (steps, False))
+    real, asked = fm.correct_tibia, []
+    keys = ("sigma_mm", "sigma_deg", "sigma_axial_deg")
+
+    def recorded(*a, **kw):
+        asked.append(tuple(kw.get(k) for k in keys))
+        return real(*a, **kw)
+
+    monkeypatch.setattr(fm, "correct_tibia", recorded)
+    model = build_association_model(volunteer)
+    fm.prior_method("init", model, volunteer, pts)
+    assert asked == [(None, None, None)] * 2
+    asked.clear()
+    fm.prior_method("init", model, volunteer, pts, second_tibia_prior=(6.0, 10.0, 12.0))
+    assert asked == [(None, None, None), (6.0, 10.0, 12.0)]
+    for bad in ((6.0, 10.0), (6.0, -1.0, 10.0), ("a", 1.0, 1.0), 5.0):
+        with pytest.raises(KneeInputError, match="second_tibia_prior"):
+            fm.prior_method("init", model, volunteer, pts, second_tibia_prior=bad)

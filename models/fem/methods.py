@@ -1199,7 +1199,8 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
                  femur_from: str = "thigh", refine_on_posed_skin: bool = True, flexion_skin: str = "blend",
                  weigh_axial: bool = True, apart_share: float | None = APART_FEMUR_SHARE, shank_skin: str = "fem",
                  skin: SkinModel | None = None, surface_springs: str = SURFACE_SPRINGS, adapt_point_sd: bool = False,
-                 retry_estimate: bool = RETRY_ESTIMATE, **paper_options) -> Reconstruction:
+                 retry_estimate: bool = RETRY_ESTIMATE, second_tibia_prior: tuple | None = None,
+                 **paper_options) -> Reconstruction:
     """Methods (ii) ``"init"``, (iii) ``"links"`` and (iv) ``"kinematics"`` (and (i) ``"paper"``, for
     one entry point to all four) on a point cloud (P, 3), mm, world frame, with ``prior`` the (fitted)
     mechanism of the subject the model was built from; (i), run or fallen back on, takes :data:`PAPER_AT_BEST`
@@ -1240,6 +1241,15 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     axis more than :data:`AXIAL_DISAGREEMENT_DEG` from the flexion estimate's placement, the estimate is made again
     from the thigh's placement and kept if it fits the points better (said in the notes); where the two still
     disagree the run warns (:attr:`AxialPlacement.warning`).
+    ``second_tibia_prior`` (mm, deg, deg; an option, off by default): the prior's sds of the tibia's second
+    correction, on the FEM-posed shank (:func:`knee.models.prior.correct_tibia`'s ``sigma_mm``, ``sigma_deg`` and
+    ``sigma_axial_deg``); None: the first correction's (2 mm, 3 deg, 5 deg about the tibia's axis). A looser second
+    prior trusts the shank the FEM posed further from the prior's path. Measured with (6, 10, 10) (BENCHMARKS.md,
+    "The tibia's correction against the prior"): on six case sets no choice was made on (seeds 6-10 and 13) (iii)
+    0.10 mm better a case at 0-1 mm skin mismatch (se 0.03; the Visible Human 0.18, the phantom 0.02), the flexion
+    within 2 deg in 11 more views of 288; on seeds 0-4 0.03 mm (se 0.04), the median 2.41 -> 2.52 mm; on
+    lenhart2015's bones under a carried skin 0.19 mm worse a case (se 0.07); the phantom worse at 2 mm on both
+    groups of seeds. Not the default.
     ``adapt_point_sd``: both of the tibia's corrections take the shank points' sd from their own residuals where
     below the assumed 2 mm (:func:`knee.models.prior.correct_tibia`'s option; off: measured better on the
     phantom and the Visible Human, worse on lenhart2015's bones under a carried skin, BENCHMARKS.md)."""
@@ -1253,6 +1263,16 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
     if surface_springs not in SURFACE_SPRING_KINDS:
         raise KneeInputError(f"the surface springs must be one of {', '.join(SURFACE_SPRING_KINDS)}, got "
                              f"{surface_springs!r}")
+    second = {}
+    if second_tibia_prior is not None:
+        try:
+            sds = [float(v) for v in second_tibia_prior]
+        except (TypeError, ValueError):
+            sds = []
+        if len(sds) != 3 or not all(math.isfinite(v) and v > 0.0 for v in sds):
+            raise KneeInputError("second_tibia_prior must be three positive numbers (mm, deg, deg about the tibia's "
+                                 f"axis), got {second_tibia_prior!r}")
+        second = dict(zip(("sigma_mm", "sigma_deg", "sigma_axial_deg"), sds))
     paper_options = {**PAPER_AT_BEST, **paper_options}  # (i), here and as the fallback, at its best reading
     if method == "paper":
         return paper_method(model, points, **paper_options)
@@ -1336,7 +1356,7 @@ def prior_method(method: str, model: AssociationModel, prior: Mechanism, points,
                 pts_model = transform_points(T_fix, pts_model)
                 T_world = T_world @ invert_poses(T_fix)
                 shank = fem_posed_shank(model, est.skin, est.flexion, corr.T) if shank_skin == "fem" else est.skin
-                again = correct_tibia(shank, pts_model, est.flexion, adapt_point_sd=adapt_point_sd)
+                again = correct_tibia(shank, pts_model, est.flexion, adapt_point_sd=adapt_point_sd, **second)
                 if again.applied:
                     corr = again
                     moved = True
